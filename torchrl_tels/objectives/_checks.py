@@ -1,0 +1,47 @@
+"""Input checks shared by the TELS losses: one clear error per bad batch."""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+
+
+class MissingKeyError(KeyError):
+    """A required tensordict key is absent; prints its message without KeyError's quoting."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+def checked_get(
+    tensordict: TensorDictBase,
+    key: NestedKey,
+    last_dim: int | None,
+    owner: str,
+    *,
+    check_finite: bool = True,
+) -> torch.Tensor:
+    """Reads ``key`` and raises one error naming the key and its shape when it is unusable.
+
+    A missing key, a wrong trailing dimension, or a NaN/inf entry would
+    otherwise surface as a shape error deep inside an MLP or as a silently
+    poisoned optimizer state.
+    """
+    value = tensordict.get(key, None)
+    if value is None:
+        raise MissingKeyError(
+            f"{owner}: the input tensordict has no key {key!r} "
+            f"(keys present: {sorted(map(str, tensordict.keys(True, True)))}). "
+            f"Rename it with {owner}.set_keys(...) if your data uses another name."
+        )
+    if last_dim is not None and (value.ndim == 0 or value.shape[-1] != last_dim):
+        raise ValueError(
+            f"{owner}: {key!r} has shape {tuple(value.shape)}, expected a trailing "
+            f"dimension of {last_dim}."
+        )
+    if check_finite and value.is_floating_point() and not torch.isfinite(value).all():
+        bad = (~torch.isfinite(value)).sum().item()
+        raise ValueError(
+            f"{owner}: {key!r} (shape {tuple(value.shape)}) contains {bad} NaN/inf entries."
+        )
+    return value

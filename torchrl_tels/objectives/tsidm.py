@@ -1,0 +1,233 @@
+"""TS-IDM training objective, paper Eq. (3)-(7)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import dispatch
+from tensordict.utils import NestedKey
+from torchrl.objectives.common import LossModule
+
+from torchrl_tels.modules.tsidm import jvp, squared_norm, TSIDM
+from torchrl_tels.objectives._checks import checked_get
+
+__all__ = ["TSIDMLoss", "TSIDM_ABLATIONS"]
+
+#: Table 3's variants, in the order the paper adds the terms.
+TSIDM_ABLATIONS = ("ae", "dyn", "ode", "full")
+
+
+class TSIDMLoss(LossModule):
+    r"""The TS-IDM objective of TELS (paper §3.1, Eq. 7).
+
+    With :math:`s, s'` normalized by the TS-IDM and :math:`\dot s = s' - s`,
+    :math:`z_s = \phi_s(s)`, :math:`z_{s'} = \phi_s(s')`,
+    :math:`z_a = h_{inv}(z_s, z_{s'})`:
+
+    .. math::
+
+        \ell_{rec} &= \|\psi_s(z_s) - s\|^2 + \|\psi_a(z_a) - a\|^2 && (3)\\
+        \ell_{dyn} &= \|\nabla_s\phi_s(s)\,\dot s - h_{fwd}(z_s, z_a)\|^2
+                    + \|\nabla_{s'}\phi_s(s')(-\dot s) - h_{rvs}(z_{s'}, z_a)\|^2 && (4)\\
+        \ell_{ode} &= \|\nabla_{z_s}\psi_s(z_s)\,h_{fwd}(z_s, z_a) - \dot s\|^2
+                    + \|\nabla_{z_{s'}}\psi_s(z_{s'})\,h_{rvs}(z_{s'}, z_a) + \dot s\|^2 && (5)\\
+        \ell_{T\text{-}sym} &= \|h_{fwd}(z_s, z_a) + h_{rvs}(z_s + h_{fwd}(z_s, z_a), z_a)\|^2 && (6)\\
+        \mathcal{L} &= \ell_{rec} + \beta(\ell_{dyn} + \ell_{ode} + \ell_{T\text{-}sym}) && (7)
+
+    The four Jacobian-vector products are computed with forward-mode AD
+    (:func:`torchrl_tels.modules.tsidm.jvp`), never by building Jacobians.
+    Eq. (7) sums over the dataset; here it is averaged over the batch, which
+    only rescales the learning rate.
+
+    The output holds ``loss_state_rec``, ``loss_action_rec`` (:math:`\ell_{rec}`
+    has weight 1, Table 10) and ``loss_dyn``, ``loss_ode``, ``loss_tsym``
+    already multiplied by the one shared :math:`\beta` (Appendix B.5), so that
+    the sum of the ``loss_*`` entries is exactly Eq. (7). Unweighted, detached
+    copies ride along as ``ell_rec``, ``ell_dyn``, ``ell_ode``, ``ell_tsym``
+    and ``ell_total`` (= Eq. 7, the quantity Appendix B.5 selects β by).
+
+    Args:
+        tsidm: the :class:`~torchrl_tels.modules.TSIDM` to train.
+        beta: the shared weight β of Eq. (7) (Table 10: chosen from {0.01, 0.1, 1}).
+        ablation: one of Table 3's variants: ``"ae"`` (φ/ψ + h_inv: ℓ_rec only),
+            ``"dyn"`` (+ h_fwd, h_rvs: + ℓ_dyn), ``"ode"`` (+ ℓ_ode) or ``"full"`` (+ ℓ_T-sym).
+        dim_reduction: how :math:`\|\cdot\|^2` reduces over vector entries,
+            ``"sum"`` (as written, default) or ``"mean"``.
+        check_inputs: validate keys, shapes and finiteness of every batch.
+
+    Examples:
+        >>> tsidm = TSIDM(11, 3)
+        >>> loss = TSIDMLoss(tsidm, beta=1.0)
+        >>> td = TensorDict({"observation": torch.randn(8, 11), "action": torch.randn(8, 3),
+        ...                  ("next", "observation"): torch.randn(8, 11)}, [8])
+        >>> out = loss(td)
+        >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`TSIDMLoss`, configurable with ``set_keys``.
+
+        Attributes:
+            observation (NestedKey): the raw state :math:`s`; :math:`s'` is read
+                from ``("next", observation)`` of the same transition.
+                Defaults to ``"observation"``.
+            action (NestedKey): the action :math:`a`. Defaults to ``"action"``.
+            terminated (NestedKey): accepted for symmetry with the value
+                losses; Eq. (3)-(7) do not depend on it, since :math:`s'` is
+                always the transition's own next state. Defaults to ``"terminated"``.
+        """
+
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        terminated: NestedKey = "terminated"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+
+    # The Jacobian-vector product used by Eqs. (4)-(5); a seam for the
+    # vmap(jacrev) comparison in benchmarks/tsidm_step.py.
+    jvp = staticmethod(jvp)
+
+    tsidm: TSIDM
+    tsidm_params: TensorDictParams
+    target_tsidm_params: TensorDictParams
+
+    def __init__(
+        self,
+        tsidm: TSIDM,
+        *,
+        beta: float = 1.0,
+        ablation: str = "full",
+        dim_reduction: str = "sum",
+        check_inputs: bool = True,
+    ) -> None:
+        self._in_keys = None
+        super().__init__()
+        if not isinstance(tsidm, TSIDM):
+            raise TypeError(f"TSIDMLoss expects a TSIDM, got {type(tsidm).__name__}.")
+        beta = float(beta)
+        if not math.isfinite(beta) or beta < 0:
+            raise ValueError(f"TSIDMLoss: beta must be a finite number >= 0, got {beta}.")
+        if ablation not in TSIDM_ABLATIONS:
+            raise ValueError(
+                f"TSIDMLoss: unknown ablation {ablation!r}; choose one of {TSIDM_ABLATIONS}."
+            )
+        if dim_reduction not in ("sum", "mean"):
+            raise ValueError(
+                f"TSIDMLoss: dim_reduction must be 'sum' or 'mean', got {dim_reduction!r}."
+            )
+        self.beta = beta
+        self.ablation = ablation
+        self.dim_reduction = dim_reduction
+        self.check_inputs = check_inputs
+        self.convert_to_functional(tsidm, "tsidm", create_target_params=False)
+
+    # keys ----------------------------------------------------------------
+    def _set_in_keys(self):
+        self._in_keys = [
+            self.tensor_keys.observation,
+            self.tensor_keys.action,
+            ("next", self.tensor_keys.observation),
+        ]
+
+    @property
+    def in_keys(self):
+        if self._in_keys is None:
+            self._set_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+    @property
+    def out_keys(self):
+        level = TSIDM_ABLATIONS.index(self.ablation)
+        terms = ["loss_state_rec", "loss_action_rec", "loss_dyn", "loss_ode", "loss_tsym"]
+        ells = ["ell_rec", "ell_dyn", "ell_ode", "ell_tsym"]
+        return terms[: 2 + level] + ells[: 1 + level] + ["ell_total"]
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        self._set_in_keys()
+
+    # terms ----------------------------------------------------------------
+    def _read_batch(self, tensordict: TensorDictBase):
+        obs_dim, act_dim = self.tsidm.observation_dim, self.tsidm.action_dim
+        keys = self.tensor_keys
+        if self.check_inputs:
+            get = lambda key, dim: checked_get(tensordict, key, dim, type(self).__name__)
+        else:
+            get = lambda key, dim: tensordict.get(key)
+        observation = get(keys.observation, obs_dim)
+        next_observation = get(("next", keys.observation), obs_dim)
+        action = get(keys.action, act_dim)
+        return observation, action, next_observation
+
+    def _reduce(self, per_sample: torch.Tensor) -> torch.Tensor:
+        return per_sample.mean()
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        observation, action, next_observation = self._read_batch(tensordict)
+        level = TSIDM_ABLATIONS.index(self.ablation)
+        sq = lambda x: squared_norm(x, self.dim_reduction)
+        with self.tsidm_params.to_module(self.tsidm, preserve_module_state=False):
+            tsidm = self.tsidm
+            s = tsidm.normalize_state(observation)
+            s_next = tsidm.normalize_state(next_observation)
+            s_dot = s_next - s
+
+            # One batched pass encodes s and s' and, for ℓ_dyn, pushes the
+            # tangents ṡ and -ṡ through φ_s at the same time.
+            states = torch.cat([s, s_next], 0)
+            if level >= 1:
+                z_both, encoder_jvp = self.jvp(tsidm.state_encoder, states, torch.cat([s_dot, -s_dot], 0))
+                jvp_s, jvp_s_next = encoder_jvp.split(s.shape[0], 0)
+            else:
+                z_both = tsidm.state_encoder(states)
+            z, z_next = z_both.split(s.shape[0], 0)
+            z_a = tsidm.infer_latent_action(z, z_next)
+
+            # per-sample regularizers of Eq. (7), in Table 3's order
+            regularizers = {}
+            if level >= 1:
+                z_dot_fwd = tsidm.latent_forward(z, z_a)
+                z_dot_rvs = tsidm.latent_reverse(z_next, z_a)
+                # Eq. (4)
+                regularizers["dyn"] = sq(jvp_s - z_dot_fwd) + sq(jvp_s_next - z_dot_rvs)
+            if level >= 2:
+                s_hat, decoder_jvp = self.jvp(
+                    tsidm.state_decoder, z_both, torch.cat([z_dot_fwd, z_dot_rvs], 0)
+                )
+                s_hat = s_hat[: s.shape[0]]
+                jvp_fwd, jvp_rvs = decoder_jvp.split(s.shape[0], 0)
+                # Eq. (5)
+                regularizers["ode"] = sq(jvp_fwd - s_dot) + sq(jvp_rvs + s_dot)
+            else:
+                s_hat = tsidm.decode_state(z)
+            if level >= 3:
+                # Eq. (6)
+                regularizers["tsym"] = tsidm.tsym_consistency(z, z_a, self.dim_reduction)
+            # Eq. (3)
+            state_rec = sq(s_hat - s)
+            action_rec = sq(tsidm.decode_action(z_a) - action)
+
+        out = {
+            "loss_state_rec": self._reduce(state_rec),
+            "loss_action_rec": self._reduce(action_rec),
+        }
+        ell_rec = (out["loss_state_rec"] + out["loss_action_rec"]).detach()
+        ells = {"ell_rec": ell_rec}
+        ell_total = ell_rec
+        for name, per_sample in regularizers.items():
+            value = self._reduce(per_sample)
+            out[f"loss_{name}"] = self.beta * value
+            ells[f"ell_{name}"] = value.detach()
+            ell_total = ell_total + self.beta * value.detach()
+        # Eq. (7)
+        ells["ell_total"] = ell_total
+        out.update(ells)
+        return TensorDict(out, batch_size=[])
