@@ -1,12 +1,15 @@
 """The T-symmetry enforced inverse dynamics model (TS-IDM), paper §3.1."""
 from __future__ import annotations
 
-from typing import Sequence
+import os
+from typing import Any, Sequence
 
 import torch
 from torch import nn
 
 from torchrl.modules import MLP
+
+from torchrl_tels.checkpoint import atomic_save, CheckpointError, load_checkpoint
 
 __all__ = ["TSIDM", "jvp", "squared_norm"]
 
@@ -189,6 +192,8 @@ class TSIDM(nn.Module):
 
     # --------------------------------------------------------------- the maps
     def normalize_state(self, observation: torch.Tensor) -> torch.Tensor:
+        # Gym envs emit float64 observations; the networks run in the buffers' dtype.
+        observation = observation.to(self.obs_loc.dtype)
         return (observation - self.obs_loc) / self.obs_scale
 
     def denormalize_state(self, normalized: torch.Tensor) -> torch.Tensor:
@@ -248,3 +253,47 @@ class TSIDM(nn.Module):
 
     def forward(self, observation: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
         return self.infer_action(observation, next_observation)
+
+    # ------------------------------------------------------------ save/load
+    CHECKPOINT_FORMAT = "torchrl_tels.tsidm/v1"
+
+    def save(self, path: str | os.PathLike, metadata: dict[str, Any] | None = None) -> None:
+        """Writes config, weights (with the state normalization) and ``metadata`` atomically."""
+        atomic_save(
+            {
+                "format": self.CHECKPOINT_FORMAT,
+                "config": self.config(),
+                "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+                "metadata": dict(metadata or {}),
+            },
+            path,
+        )
+
+    @classmethod
+    def load(
+        cls,
+        path: str | os.PathLike,
+        *,
+        observation_dim: int | None = None,
+        action_dim: int | None = None,
+    ) -> "TSIDM":
+        """Rebuilds a TS-IDM saved by :meth:`save`, in eval mode.
+
+        ``observation_dim``/``action_dim``, when given, must match the file:
+        a TS-IDM trained for another env is refused with a clear error.
+        """
+        payload = load_checkpoint(path, cls.CHECKPOINT_FORMAT)
+        config = payload["config"]
+        for name, expected in (("observation_dim", observation_dim), ("action_dim", action_dim)):
+            if expected is not None and int(config[name]) != int(expected):
+                raise CheckpointError(
+                    f"TS-IDM checkpoint {path} has {name}={config[name]}, but this "
+                    f"environment/dataset has {name}={expected}: it was trained for another task."
+                )
+        tsidm = cls(**config)
+        try:
+            tsidm.load_state_dict(payload["state_dict"])
+        except RuntimeError as err:
+            raise CheckpointError(f"TS-IDM checkpoint {path} does not match its own config: {err}") from None
+        tsidm.metadata = payload.get("metadata", {})
+        return tsidm.eval()

@@ -1,0 +1,258 @@
+"""LatentExpectileLoss (Eq. 8), TSymGuideLoss (Eq. 9, 10) and the TELS actor (Eq. 11)."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives import SoftUpdate
+
+from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
+from torchrl_tels.objectives import LatentExpectileLoss, TSymGuideLoss, value_scale
+
+OBS, ACT, B = 6, 2, 64
+CELLS = (32, 32)
+
+
+def small_tsidm() -> TSIDM:
+    tsidm = TSIDM(OBS, ACT, encoder_cells=CELLS, decoder_cells=CELLS, inverse_cells=CELLS,
+                  action_decoder_cells=CELLS, dynamics_cells=CELLS)
+    tsidm.set_state_normalization(torch.randn(OBS), torch.rand(OBS) + 0.5)
+    return tsidm.eval()
+
+
+def latent_batch(tsidm: TSIDM, n: int = B, reward_scale: float = 1.0) -> TensorDict:
+    obs, next_obs = torch.randn(n, OBS), torch.randn(n, OBS)
+    with torch.no_grad():
+        latent, next_latent = tsidm.encode_state(obs), tsidm.encode_state(next_obs)
+    terminated = torch.rand(n, 1) < 0.2
+    return TensorDict(
+        {
+            "observation": obs,
+            "latent": latent,
+            "next": {
+                "observation": next_obs,
+                "latent": next_latent,
+                "reward": reward_scale * torch.randn(n, 1),
+                "terminated": terminated,
+                "done": terminated.clone(),
+            },
+        },
+        [n],
+    )
+
+
+def total(out: TensorDict) -> torch.Tensor:
+    return sum(v for k, v in out.items() if k.startswith("loss_"))
+
+
+def train(loss, td, steps, lr=1e-3, params=None):
+    optim = torch.optim.Adam(params if params is not None else loss.parameters(), lr=lr)
+    history = []
+    for _ in range(steps):
+        out = loss(td)
+        optim.zero_grad()
+        total(out).backward()
+        optim.step()
+        history.append(total(out).item())
+    return history
+
+
+# --------------------------------------------------------------- Eq. (8)
+def test_expectile_loss_matches_eq8():
+    tsidm = small_tsidm()
+    value = make_latent_value(tsidm.latent_state_dim, CELLS)
+    loss = LatentExpectileLoss(value, expectile=0.7)
+    loss.make_value_estimator(gamma=0.9)
+    td = latent_batch(tsidm)
+    out = loss(td)
+    with torch.no_grad():
+        target = td["next", "reward"].squeeze(-1) + 0.9 * (~td["next", "terminated"]).float().squeeze(-1) * value.module(
+            td["next", "latent"]
+        ).squeeze(-1)
+        diff = target - value.module(td["latent"]).squeeze(-1)
+        expected = (torch.where(diff < 0, 0.3, 0.7) * diff**2).mean()
+    torch.testing.assert_close(out["loss_value"], expected)
+
+
+def test_expectile_loss_decreases_and_target_follows_soft_update():
+    tsidm = small_tsidm()
+    value = make_latent_value(tsidm.latent_state_dim, CELLS)
+    loss = LatentExpectileLoss(value, expectile=0.7)
+    loss.make_value_estimator(gamma=0.99)
+    updater = SoftUpdate(loss, tau=0.05)
+    td = latent_batch(tsidm)
+    before_target = loss.target_value_network_params.clone()
+    history = train(loss, td, 150, lr=1e-2)
+    assert sum(history[-5:]) < 0.5 * sum(history[:5])
+    live = loss.value_network_params
+    # Table 11's moving average 0.05: target <- 0.95 target + 0.05 online.
+    updater.step()
+    for key, target in loss.target_value_network_params.items(True, True):
+        torch.testing.assert_close(target, 0.95 * before_target[key] + 0.05 * live[key].data)
+
+
+@pytest.mark.parametrize("expectile", [0.0, 1.0, -0.5, float("nan")])
+def test_expectile_outside_unit_interval_is_refused(expectile):
+    with pytest.raises(ValueError, match=r"expectile must lie in \(0, 1\)"):
+        LatentExpectileLoss(make_latent_value(OBS, CELLS), expectile=expectile)
+
+
+def test_gamma_in_constructor_is_rejected_like_torchrl():
+    with pytest.raises(TypeError, match="make_value_estimator"):
+        LatentExpectileLoss(make_latent_value(OBS, CELLS), gamma=0.99)
+
+
+# --------------------------------------------------------------- Eq. (9)
+def make_guide_loss(mode, tsidm, value=None, **kwargs):
+    value = value or make_latent_value(tsidm.latent_state_dim, CELLS)
+    guide = make_guide_policy(tsidm.latent_state_dim, mode, CELLS)
+    loss = TSymGuideLoss(guide, value, tsidm, mode=mode, **kwargs)
+    loss.make_value_estimator(gamma=0.99)
+    return loss, guide, value
+
+
+def test_deterministic_guide_terms_match_eq9_and_c3():
+    tsidm = small_tsidm()
+    loss, guide, value = make_guide_loss("deterministic", tsidm, alpha=0.5, eta=5.0)
+    td = latent_batch(tsidm)
+    out = loss(td)
+    with torch.no_grad():
+        z = td["latent"]
+        proposal = guide.module(z)
+        lam = 0.5 / value.module(z).abs().mean()  # Appendix C.3
+        next_state = (td["next", "observation"] - tsidm.obs_loc) / tsidm.obs_scale
+        state_term = 5.0 * ((tsidm.state_decoder(torch.cat([proposal], -1)) - next_state) ** 2).sum(-1).mean()
+        z_a = tsidm.inverse_dynamics(torch.cat([z, proposal], -1))
+        fwd = tsidm.forward_dynamics(torch.cat([z, z_a], -1))
+        rvs = tsidm.reverse_dynamics(torch.cat([z + fwd, z_a], -1))
+        tsym = ((fwd + rvs) ** 2).sum(-1).mean()
+    torch.testing.assert_close(out["lambda_alpha"], lam)
+    torch.testing.assert_close(value_scale(0.5, value.module(z).squeeze(-1)), lam)
+    torch.testing.assert_close(out["loss_guide_value"], -(lam * value.module(proposal)).mean())
+    torch.testing.assert_close(out["loss_guide_state"], state_term)
+    torch.testing.assert_close(out["loss_tsym"], tsym)
+
+
+@pytest.mark.parametrize("mode", ["deterministic", "stochastic"])
+def test_only_the_guide_receives_gradients(mode):
+    tsidm = small_tsidm()
+    loss, guide, value = make_guide_loss(mode, tsidm)
+    assert {id(p) for p in loss.parameters()} == {id(p) for p in guide.parameters()}
+    total(loss(latent_batch(tsidm))).backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in guide.parameters() if p.ndim > 1)
+    assert all(p.grad is None for p in value.parameters())
+    assert all(p.grad is None for p in tsidm.parameters())
+
+
+@pytest.mark.parametrize("mode", ["deterministic", "stochastic"])
+def test_guide_loss_decreases_on_a_fixed_batch(mode):
+    tsidm = small_tsidm()
+    loss, *_ = make_guide_loss(mode, tsidm)
+    history = train(loss, latent_batch(tsidm), 60, lr=1e-2)
+    assert sum(history[-5:]) / 5 < sum(history[:5]) / 5 - 0.1 * abs(sum(history[:5]) / 5)
+
+
+def test_guide_sees_the_current_value_network():
+    tsidm = small_tsidm()
+    loss, _, value = make_guide_loss("deterministic", tsidm, alpha=1.0)
+    td = latent_batch(tsidm)
+    before = loss(td)["lambda_alpha"]
+    with torch.no_grad():
+        value.module[-1].bias.add_(10.0)  # what an optimizer step on V would do, in place
+    after = loss(td)["lambda_alpha"]
+    torch.testing.assert_close(after, 1.0 / value.module(td["latent"]).abs().mean())
+    assert not torch.allclose(before, after)
+
+
+@pytest.mark.parametrize("mode", ["deterministic", "stochastic"])
+def test_tsym_switch_removes_exactly_the_regularizer(mode):
+    tsidm = small_tsidm()
+    torch.manual_seed(1)
+    with_reg, guide, value = make_guide_loss(mode, tsidm)
+    without = TSymGuideLoss(guide, value, tsidm, mode=mode, tsym_regularizer=False)
+    without.make_value_estimator(gamma=0.99)
+    td = latent_batch(tsidm)
+    a, b = with_reg(td), without(td)
+    assert set(a.keys()) - set(b.keys()) == {"loss_tsym"}
+    assert set(b.keys()) == set(without.out_keys)
+    for key in b.keys():
+        torch.testing.assert_close(a[key], b[key])
+
+
+# -------------------------------------------------------------- Eq. (10)
+def test_stochastic_weights_are_clipped():
+    tsidm = small_tsidm()
+    loss, guide, _ = make_guide_loss("stochastic", tsidm, alpha=10.0, max_weight=50.0)
+    td = latent_batch(tsidm)
+    td["next", "reward"] = torch.full((B, 1), 1000.0)  # exp(10 * ~1000) overflows without the clip
+    out = loss(td)
+    assert out["clipped_weight_fraction"] == 1.0
+    log_prob = guide.get_dist(td.clone()).log_prob(td["next", "latent"])
+    torch.testing.assert_close(out["loss_guide_awr"], -(50.0 * log_prob).mean())
+    assert torch.isfinite(total(out))
+
+
+def test_stochastic_advantage_matches_td0():
+    tsidm = small_tsidm()
+    loss, _, value = make_guide_loss("stochastic", tsidm, alpha=1.0)
+    td = latent_batch(tsidm)
+    out = loss(td)
+    with torch.no_grad():
+        not_term = (~td["next", "terminated"]).float().squeeze(-1)
+        adv = (td["next", "reward"].squeeze(-1) + 0.99 * not_term * value.module(td["next", "latent"]).squeeze(-1)
+               - value.module(td["latent"]).squeeze(-1))
+    torch.testing.assert_close(out["advantage"], adv.mean())
+
+
+# -------------------------------------------------------------- Eq. (11)
+def test_actor_actions_in_bounds_and_both_forms_agree():
+    from torchrl.data import Bounded
+
+    tsidm = small_tsidm()
+    with torch.no_grad():
+        tsidm.action_decoder[-1].bias.fill_(50.0)  # push raw actions far outside the box
+    spec = Bounded(-torch.ones(ACT), torch.ones(ACT), (ACT,))
+    guide = make_guide_policy(tsidm.latent_state_dim, "deterministic", CELLS)
+    from_obs = make_tels_actor(tsidm, guide, spec)
+    from_latent = make_tels_actor(tsidm, guide, spec, from_latent=True)
+    obs = torch.randn(B, OBS)
+    a = from_obs(TensorDict({"observation": obs}, [B]))["action"]
+    b = from_latent(TensorDict({"latent": tsidm.encode_state(obs).detach()}, [B]))["action"]
+    torch.testing.assert_close(a, b)
+    assert (a <= 1).all() and (a >= -1).all() and (a == 1).any()
+    # Eq. (11) exactly, inside the bounds
+    with torch.no_grad():
+        z = tsidm.encode_state(obs)
+        raw = tsidm.decode_action(tsidm.infer_latent_action(z, guide.module(z)))
+    torch.testing.assert_close(a, raw.clamp(-1, 1))
+
+
+def test_actor_keeps_dropout_off_in_train_mode():
+    tsidm = TSIDM(OBS, ACT, inverse_cells=(64, 64), inverse_dropout=0.5)
+    guide = make_guide_policy(tsidm.latent_state_dim, "deterministic", CELLS)
+    actor = make_tels_actor(tsidm, guide)
+    actor.train()
+    td = TensorDict({"observation": torch.randn(B, OBS)}, [B])
+    torch.testing.assert_close(actor(td.clone())["action"], actor(td.clone())["action"])
+
+
+def test_actor_rolls_out_in_hopper():
+    from torchrl.envs import GymEnv
+
+    env = GymEnv("Hopper-v4")
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = env.action_spec.shape[-1]
+    tsidm = TSIDM(obs_dim, act_dim, encoder_cells=CELLS, decoder_cells=CELLS, inverse_cells=CELLS,
+                  action_decoder_cells=CELLS, dynamics_cells=CELLS)
+    with torch.no_grad():
+        tsidm.action_decoder[-1].bias.fill_(3.0)
+    for mode in ("deterministic", "stochastic"):
+        actor = make_tels_actor(tsidm, make_guide_policy(obs_dim, mode, CELLS), env.action_spec)
+        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+            rollout = env.rollout(20, actor)
+        actions = rollout["action"]
+        assert actions.shape[-1] == act_dim and rollout.shape[0] >= 1
+        assert (actions <= env.action_spec.high).all() and (actions >= env.action_spec.low).all()
+        assert torch.isfinite(rollout["next", "observation"]).all()
+    env.close()

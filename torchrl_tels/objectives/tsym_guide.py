@@ -1,0 +1,299 @@
+"""T-symmetry regularized guide-policy optimization, paper Eq. (9) and (10)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import dispatch, TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.objectives.common import LossModule
+from torchrl.objectives.utils import (
+    _GAMMA_LMBDA_DEPREC_ERROR,
+    dispatch_value_estimator,
+    ValueEstimators,
+)
+from torchrl.objectives.value import ValueEstimatorBase
+
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
+from torchrl_tels.modules.tsidm import squared_norm, TSIDM
+from torchrl_tels.objectives._checks import checked_get
+
+__all__ = ["TSymGuideLoss", "value_scale"]
+
+GUIDE_MODES = ("deterministic", "stochastic")
+
+
+def value_scale(alpha: float, data_values: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    r""":math:`\lambda_\alpha = \alpha / [\sum_i |V(\phi_s(s_i))| / N]` over the batch (Appendix C.3)."""
+    return alpha / data_values.abs().mean().clamp_min(eps)
+
+
+class TSymGuideLoss(LossModule):
+    r"""Trains the guide policy :math:`\pi_g` in the TS-IDM latent space (paper §3.2).
+
+    Deterministic guide, Eq. (9) (MuJoCo):
+
+    .. math::
+
+        \max_{\pi_g} \mathbb{E}\big[\lambda_\alpha V(\pi_g(z_s))
+            - \eta \|\psi_s(\pi_g(z_s)) - s'\|^2
+            - \ell_{T\text{-}sym}(z_s, h_{inv}(z_s, \pi_g(z_s)))\big],
+        \quad \lambda_\alpha = \frac{\alpha}{\frac1N\sum_i |V(z_{s_i})|}
+
+    with :math:`s'` in the TS-IDM's normalized state space. Output:
+    ``loss_guide_value`` (:math:`-\lambda_\alpha V`), ``loss_guide_state``
+    (the η term) and ``loss_tsym``.
+
+    Stochastic guide, Eq. (10) (AntMaze):
+
+    .. math::
+
+        \max_{\pi_g} \mathbb{E}\big[\exp(\alpha A(z_s, z_{s'})) \log \pi_g(z_{s'}|z_s)
+            - \ell_{T\text{-}sym}(z_s, h_{inv}(z_s, \tilde z)))\big],
+        \quad \tilde z \sim \pi_g(\cdot|z_s)
+
+    with :math:`A = r + \gamma(1-d) V(z_{s'}) - V(z_s)` computed by TorchRL's TD(0)
+    estimator (set γ with ``make_value_estimator(gamma=...)``). The weight
+    :math:`\exp(\alpha A)` is clipped at ``max_weight`` (100 by default, as
+    in IQL/POR) so that one large advantage cannot dominate a batch. The
+    sample :math:`\tilde z` is drawn with ``rsample`` (reparameterized), so
+    :math:`\ell_{T\text{-}sym}` differentiates through it even though TorchRL
+    losses run in deterministic exploration mode. Output: ``loss_guide_awr``
+    and ``loss_tsym``.
+
+    :math:`\ell_{T\text{-}sym}` is Eq. (6) of the trained TS-IDM
+    (:meth:`TSIDM.tsym_consistency`). The TS-IDM and :math:`V` are frozen here:
+    their weights are held as detached views (they follow updates made by
+    :class:`LatentExpectileLoss`) and only the guide's parameters are
+    parameters of this loss.
+
+    Args:
+        guide_network: :func:`~torchrl_tels.modules.make_guide_policy` output
+            (a ``TensorDictModule`` for ``"deterministic"``, a probabilistic
+            sequence for ``"stochastic"``).
+        value_network: the latent value :math:`V` (reads the latent key, writes ``"state_value"``).
+        tsidm: the trained TS-IDM.
+        mode: ``"deterministic"`` (Eq. 9) or ``"stochastic"`` (Eq. 10).
+        alpha: α (Table 11: 0.01 MuJoCo, 10 AntMaze).
+        eta: η of Eq. (9) (Appendix B.5: from {1, 5, 10}).
+        tsym_regularizer: ``False`` drops :math:`\ell_{T\text{-}sym}` (Fig. 5 ablation).
+        max_weight: clip of the AWR weight.
+        dim_reduction: ``"sum"`` (as written) or ``"mean"`` over vector entries of each norm.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`TSymGuideLoss`.
+
+        Attributes:
+            latent (NestedKey): :math:`z_s`, and ``("next", latent)`` for :math:`z_{s'}`.
+                Defaults to ``"latent"``.
+            observation (NestedKey): raw state; ``("next", observation)`` is the
+                :math:`s'` of Eq. (9). Defaults to ``"observation"``.
+            guide (NestedKey): where the guide writes its proposal. Defaults to ``"guide_latent"``.
+            value (NestedKey): where :math:`V` writes. Defaults to ``"state_value"``.
+            value_target (NestedKey): TD target key of the estimator. Defaults to ``"value_target"``.
+            reward, done, terminated (NestedKey): read under ``"next"`` (Eq. 10 only).
+        """
+
+        latent: NestedKey = LATENT_KEY
+        observation: NestedKey = "observation"
+        guide: NestedKey = GUIDE_KEY
+        value: NestedKey = "state_value"
+        value_target: NestedKey = "value_target"
+        reward: NestedKey = "reward"
+        done: NestedKey = "done"
+        terminated: NestedKey = "terminated"
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+    default_value_estimator = ValueEstimators.TD0
+
+    guide_network: TensorDictModule
+    guide_network_params: TensorDictParams
+    target_guide_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        guide_network: TensorDictModule,
+        value_network: TensorDictModule,
+        tsidm: TSIDM,
+        *,
+        mode: str = "deterministic",
+        alpha: float = 0.01,
+        eta: float = 1.0,
+        tsym_regularizer: bool = True,
+        max_weight: float = 100.0,
+        dim_reduction: str = "sum",
+        gamma: float | None = None,
+        check_inputs: bool = True,
+    ) -> None:
+        self._in_keys = None
+        super().__init__()
+        if gamma is not None:
+            raise TypeError(_GAMMA_LMBDA_DEPREC_ERROR)
+        if mode not in GUIDE_MODES:
+            raise ValueError(f"TSymGuideLoss: mode must be one of {GUIDE_MODES}, got {mode!r}.")
+        for name, value, low in (("alpha", alpha, 0.0), ("eta", eta, 0.0), ("max_weight", max_weight, 1e-12)):
+            if not (math.isfinite(float(value)) and float(value) >= low):
+                raise ValueError(f"TSymGuideLoss: {name} must be a finite number >= {low}, got {value}.")
+        if not isinstance(tsidm, TSIDM):
+            raise TypeError(f"TSymGuideLoss expects a TSIDM, got {type(tsidm).__name__}.")
+        squared_norm(torch.zeros(1), dim_reduction)  # validates the name
+        self.mode = mode
+        self.alpha = float(alpha)
+        self.eta = float(eta)
+        self.tsym_regularizer = bool(tsym_regularizer)
+        self.max_weight = float(max_weight)
+        self.dim_reduction = dim_reduction
+        self.check_inputs = check_inputs
+
+        self.convert_to_functional(guide_network, "guide_network", create_target_params=False)
+        self._register_frozen(value_network, "value_network")
+        self._register_frozen(tsidm.eval(), "tsidm")
+
+    def _register_frozen(self, module: torch.nn.Module, name: str) -> None:
+        # Detached views share storage with the live weights, so the guide
+        # always sees the current V, but no gradient or optimizer built from
+        # this loss's parameters() can reach V or the TS-IDM.
+        frozen = TensorDictParams(TensorDict.from_module(module).data, no_convert=True)
+        setattr(self, f"{name}_params", frozen)
+        self.__dict__[name] = module
+
+    # keys -----------------------------------------------------------------
+    def _set_in_keys(self):
+        keys = self.tensor_keys
+        in_keys = [keys.latent]
+        if self.mode == "deterministic":
+            in_keys.append(("next", keys.observation))
+        else:
+            in_keys += [
+                ("next", keys.latent),
+                ("next", keys.reward),
+                ("next", keys.done),
+                ("next", keys.terminated),
+            ]
+        self._in_keys = in_keys
+
+    @property
+    def in_keys(self):
+        if self._in_keys is None:
+            self._set_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+    @property
+    def out_keys(self):
+        if self.mode == "deterministic":
+            keys = ["loss_guide_value", "loss_guide_state"]
+            extra = ["lambda_alpha", "guide_value"]
+        else:
+            keys = ["loss_guide_awr"]
+            extra = ["advantage", "clipped_weight_fraction"]
+        return keys + (["loss_tsym"] if self.tsym_regularizer else []) + extra
+
+    # pieces ----------------------------------------------------------------
+    def _value(self, latent: torch.Tensor) -> torch.Tensor:
+        td = TensorDict({self.value_network.in_keys[0]: latent}, batch_size=latent.shape[:-1])
+        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
+            self.value_network(td)
+        return td.get(self.tensor_keys.value).squeeze(-1)
+
+    def _tsym(self, latent: torch.Tensor, proposed_next_latent: torch.Tensor) -> torch.Tensor:
+        # ℓ_T-sym(z_s, h_inv(z_s, z')): Eq. (6) applied to the guide's transition.
+        tsidm = self.tsidm
+        latent_action = tsidm.infer_latent_action(latent, proposed_next_latent)
+        return tsidm.tsym_consistency(latent, latent_action, self.dim_reduction)
+
+    def _check(self, tensordict: TensorDictBase) -> torch.Tensor:
+        owner = type(self).__name__
+        latent_dim = self.tsidm.latent_state_dim
+        for key in self.in_keys:
+            if key == self.tensor_keys.latent or key == ("next", self.tensor_keys.latent):
+                dim = latent_dim
+            elif key == ("next", self.tensor_keys.observation):
+                dim = self.tsidm.observation_dim
+            else:
+                dim = None
+            checked_get(tensordict, key, dim, owner)
+
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if self.check_inputs:
+            self._check(tensordict)
+        if self.mode == "deterministic":
+            return self._deterministic_loss(tensordict)
+        return self._stochastic_loss(tensordict)
+
+    def _deterministic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        latent = tensordict.get(keys.latent)
+        td = tensordict.select(*self.guide_network.in_keys, strict=False)
+        with self.guide_network_params.to_module(self.guide_network, preserve_module_state=False):
+            self.guide_network(td)
+        proposal = td.get(keys.guide)
+        with torch.no_grad():
+            lambda_alpha = value_scale(self.alpha, self._value(latent))
+        with self.tsidm_params.to_module(self.tsidm, preserve_module_state=False):
+            next_state = self.tsidm.normalize_state(tensordict.get(("next", keys.observation)))
+            guide_value = self._value(proposal)
+            # Eq. (9), as a loss to minimize
+            out = {
+                "loss_guide_value": -(lambda_alpha * guide_value).mean(),
+                "loss_guide_state": self.eta
+                * squared_norm(self.tsidm.decode_state(proposal) - next_state, self.dim_reduction).mean(),
+            }
+            if self.tsym_regularizer:
+                out["loss_tsym"] = self._tsym(latent, proposal).mean()
+        out["lambda_alpha"] = lambda_alpha
+        out["guide_value"] = guide_value.detach().mean()
+        return TensorDict(out, batch_size=[])
+
+    def _stochastic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        latent = tensordict.get(keys.latent)
+        next_latent = tensordict.get(("next", keys.latent))
+        with torch.no_grad():
+            td = tensordict.select(keys.latent, "next", strict=False)
+            target = self.value_estimator.value_estimate(td, target_params=self.value_network_params).squeeze(-1)
+            advantage = target - self._value(latent)
+            weight = torch.exp(self.alpha * advantage)
+            clipped = weight > self.max_weight
+            weight = weight.clamp_max(self.max_weight)
+        td = tensordict.select(*self.guide_network.in_keys, strict=False)
+        with self.guide_network_params.to_module(self.guide_network, preserve_module_state=False):
+            dist = self.guide_network.get_dist(td)
+        # Eq. (10), as a loss to minimize
+        out = {"loss_guide_awr": -(weight * dist.log_prob(next_latent)).mean()}
+        if self.tsym_regularizer:
+            with self.tsidm_params.to_module(self.tsidm, preserve_module_state=False):
+                out["loss_tsym"] = self._tsym(latent, dist.rsample()).mean()
+        out["advantage"] = advantage.mean()
+        out["clipped_weight_fraction"] = clipped.float().mean()
+        return TensorDict(out, batch_size=[])
+
+    def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
+        if value_type is None:
+            value_type = self.default_value_estimator
+        if isinstance(value_type, ValueEstimatorBase) or (
+            isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
+        ):
+            return LossModule.make_value_estimator(self, value_type, **hyperparams)
+        dispatch_value_estimator(
+            self,
+            value_type,
+            supported=(ValueEstimators.TD0,),
+            tensor_keys={
+                "value_target": self.tensor_keys.value_target,
+                "value": self.tensor_keys.value,
+                "reward": self.tensor_keys.reward,
+                "done": self.tensor_keys.done,
+                "terminated": self.tensor_keys.terminated,
+            },
+            **hyperparams,
+        )
