@@ -1,0 +1,321 @@
+"""TELS offline training, Algorithm 1 of the paper, end to end.
+
+    python recipes/tels_offline.py                      # hopper-medium-v2 10k, paper defaults
+    python recipes/tels_offline.py preset=quick         # about a minute, for smoke tests
+    python recipes/tels_offline.py tsidm.beta=auto dataset.name=walker2d-medium-v2-10k
+    python recipes/tels_offline.py run_dir=runs/x resume=true   # continue a killed run
+
+Stage 1 fits the TS-IDM (Eq. 7). Stage 2 encodes the dataset once with the
+frozen encoder and trains the latent value (Eq. 8) and the guide policy
+(Eq. 9 or 10); the policy acts through Eq. (11). Everything a run produces
+lands in ``run_dir``: the resolved config, CSV metrics, ``tsidm.pt``,
+``state.pt`` (for ``resume=true``), ``results.json`` and PNG plots.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import torch
+import tqdm
+from omegaconf import DictConfig, OmegaConf
+from torchrl.objectives import SoftUpdate
+
+from torchrl_tels.config import ConfigError, validate_config
+from torchrl_tels.data import (
+    get_task,
+    load_dataset,
+    make_offline_replay_buffer,
+    normalized_score,
+    subsample_transitions,
+    subset_trajectories,
+)
+from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
+from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
+from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
+from torchrl_tels.record import RunLogger
+from torchrl_tels.training import (
+    check_finite,
+    get_rng_state,
+    load_training_state,
+    plot_curves,
+    save_training_state,
+    set_rng_state,
+    sum_losses,
+    write_json,
+)
+
+TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total")
+
+
+def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
+    """Stage 1 for one β: trains a fresh TS-IDM and returns it with its final Eq. (7) loss."""
+    obs_dim, act_dim = data["observation"].shape[-1], data["action"].shape[-1]
+    t = cfg.tsidm
+    tsidm = TSIDM(
+        obs_dim,
+        act_dim,
+        latent_state_dim=t.latent_state_dim,
+        latent_action_dim=t.latent_action_dim,
+        encoder_cells=t.encoder_cells,
+        decoder_cells=t.decoder_cells,
+        inverse_cells=t.inverse_cells,
+        action_decoder_cells=t.action_decoder_cells,
+        dynamics_cells=t.dynamics_cells,
+        inverse_dropout=t.inverse_dropout,
+    )
+    tsidm.fit_state_normalization(data["observation"])
+    loss_module = TSIDMLoss(
+        tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction, check_inputs=False
+    )
+    optim = torch.optim.Adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
+    buffer = make_offline_replay_buffer(data, t.batch_size)
+    total_steps = t.steps or t.epochs * math.ceil(len(data) / t.batch_size)
+
+    start = 0
+    history = {key: [] for key in TSIDM_TERMS}
+    if state.get("stage") == "tsidm" and state.get("candidate") == candidate:
+        loss_module.load_state_dict(state["loss"])
+        optim.load_state_dict(state["optim"])
+        set_rng_state(state["rng"])
+        start, history = state["step"], state["history"]
+
+    tail = []  # Eq. (7) over the last 10% of steps: B.5 compares final training losses
+    progress = tqdm.tqdm(range(start, total_steps), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
+                         initial=start, total=total_steps, mininterval=2.0)
+    for step in progress:
+        losses = loss_module(buffer.sample())
+        check_finite(losses, f"stage 1 (TS-IDM, beta={beta:g})", step)
+        optim.zero_grad()
+        sum_losses(losses).backward()
+        optim.step()
+        if step >= 0.9 * total_steps:
+            tail.append(losses["ell_total"].item())
+        if (step + 1) % cfg.logger.log_interval == 0:
+            scalars = {f"tsidm/{k}": losses[k].item() for k in TSIDM_TERMS if k in losses.keys()}
+            for key, value in scalars.items():
+                history[key.split("/")[1]].append((step + 1, value))
+            logger.log_scalars({**scalars, "tsidm/beta": beta}, step + 1 + candidate * total_steps)
+            progress.set_postfix(loss=f"{scalars['tsidm/ell_total']:.4f}")
+        if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total_steps:
+            save_training_state(run_dir / "state.pt", {
+                **state, "stage": "tsidm", "candidate": candidate, "step": step + 1,
+                "loss": loss_module.state_dict(), "optim": optim.state_dict(),
+                "rng": get_rng_state(), "history": history,
+            })
+    final_loss = sum(tail) / len(tail) if tail else float("nan")
+    return tsidm.eval(), final_loss, history
+
+
+@hydra.main(config_path="config", config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> dict:
+    # ----------------------------------------------------------------- setup
+    validate_config(cfg)
+    run_dir = Path(hydra.utils.to_absolute_path(cfg.run_dir))
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / ".write_test").touch()
+        (run_dir / ".write_test").unlink()
+    except OSError as err:
+        raise ConfigError(f"run_dir {run_dir} is not writable: {err.strerror}") from None
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(cfg.seed)
+    state = {}
+    if cfg.resume and (run_dir / "state.pt").exists():
+        state = load_training_state(run_dir / "state.pt")
+        print(f"resuming {run_dir} at {state['stage']} step {state['step']}")
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode,
+                       project=cfg.logger.project, config=OmegaConf.to_container(cfg, resolve=True),
+                       wandb_id=state.get("wandb_id"))
+    state["wandb_id"] = logger.wandb_id
+    wall = dict(state.get("wall", {}))
+
+    # ------------------------------------------------------------------ data
+    dataset_name = cfg.dataset.name
+    source = dataset_name
+    if Path(hydra.utils.to_absolute_path(str(dataset_name))).exists():
+        source = hydra.utils.to_absolute_path(str(dataset_name))
+    data = load_dataset(source)
+    if cfg.dataset.size:
+        subset = subset_trajectories if cfg.dataset.subset == "trajectories" else subsample_transitions
+        data = subset(data, int(cfg.dataset.size), seed=cfg.seed)
+    task = get_task(cfg.dataset.task or Path(str(dataset_name)).stem)
+    env = make_eval_env(task.env_id)
+    env_obs_dim = env.observation_spec["observation"].shape[-1]
+    if env_obs_dim != data["observation"].shape[-1] or env.action_spec.shape[-1] != data["action"].shape[-1]:
+        raise ValueError(
+            f"dataset {dataset_name!r} has observation/action sizes "
+            f"{data['observation'].shape[-1]}/{data['action'].shape[-1]} but env {task.env_id} has "
+            f"{env_obs_dim}/{env.action_spec.shape[-1]}."
+        )
+
+    # ------------------------------------------- stage 1: TS-IDM (Eq. 3-7)
+    tsidm_path = run_dir / "tsidm.pt"
+    obs_dim, act_dim = data["observation"].shape[-1], data["action"].shape[-1]
+    if cfg.tsidm.checkpoint:
+        tsidm = TSIDM.load(hydra.utils.to_absolute_path(cfg.tsidm.checkpoint), observation_dim=obs_dim, action_dim=act_dim)
+        tsidm_history, beta_results = {}, []
+        chosen_beta = tsidm.metadata.get("beta")
+    elif tsidm_path.exists() and state.get("stage") == "policy":
+        tsidm = TSIDM.load(tsidm_path, observation_dim=obs_dim, action_dim=act_dim)
+        tsidm_history, beta_results = state["tsidm_history"], state["beta_results"]
+        chosen_beta = tsidm.metadata.get("beta")
+    else:
+        start_time = time.perf_counter() - wall.get("tsidm_s", 0.0)
+        candidates = list(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else [float(cfg.tsidm.beta)]
+        beta_results = state.get("beta_results", [])
+        best = None
+        for candidate, beta in enumerate(candidates):
+            if candidate < len(beta_results):
+                continue  # finished before an interruption; its model is in best_tsidm.pt
+            torch.manual_seed(cfg.seed + candidate)
+            model, final_loss, history = fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger)
+            beta_results.append({"beta": beta, "final_loss": final_loss})
+            print(f"TS-IDM beta={beta:g}: final training loss (Eq. 7) {final_loss:.5f}")
+            if min(r["final_loss"] for r in beta_results) == final_loss:
+                best = (model, history, beta)
+                model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
+            wall["tsidm_s"] = time.perf_counter() - start_time
+            state = {"stage": "tsidm", "candidate": candidate + 1, "step": 0, "beta_results": beta_results,
+                     "wandb_id": logger.wandb_id, "wall": wall}
+            save_training_state(run_dir / "state.pt", state)
+        if best is None:
+            model = TSIDM.load(run_dir / "best_tsidm.pt")
+            best = (model, model.metadata["history"], model.metadata["beta"])
+        tsidm, tsidm_history, chosen_beta = best
+        tsidm.save(tsidm_path, metadata={"beta": chosen_beta, "dataset": str(dataset_name), "beta_results": beta_results})
+        print(f"stage 1 done: beta={chosen_beta:g}, TS-IDM saved to {tsidm_path}")
+        wall["tsidm_s"] = time.perf_counter() - start_time
+        state = {"stage": "policy", "step": 0, "wandb_id": logger.wandb_id, "wall": wall,
+                 "tsidm_history": tsidm_history, "beta_results": beta_results}
+        save_training_state(run_dir / "state.pt", state)
+    tsidm.eval()
+    tsidm.requires_grad_(False)
+
+    # ------------------------------- stage 2: latent value and guide (Eq. 8-10)
+    data = data.clone()
+    data["next", "reward"] = cfg.dataset.reward_scale * data["next", "reward"] + cfg.dataset.reward_bias
+    # Algorithm 1, line 6: the frozen encoder maps the whole dataset once, at write time.
+    buffer = make_offline_replay_buffer(data, cfg.optim.batch_size, write_transforms=[TSIDMEncoderTransform(tsidm)])
+    latent_dim = tsidm.latent_state_dim
+    value_net = make_latent_value(latent_dim, cfg.value.num_cells)
+    guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells)
+    value_loss = LatentExpectileLoss(value_net, expectile=cfg.value.expectile, check_inputs=False)
+    value_loss.make_value_estimator(gamma=cfg.value.gamma)
+    guide_loss = TSymGuideLoss(
+        guide, value_net, tsidm, mode=cfg.guide.mode, alpha=cfg.guide.alpha, eta=cfg.guide.eta,
+        tsym_regularizer=cfg.guide.tsym_regularizer, max_weight=cfg.guide.max_weight,
+        dim_reduction=cfg.tsidm.dim_reduction, check_inputs=False,
+    )
+    guide_loss.make_value_estimator(gamma=cfg.value.gamma)
+    target_updater = SoftUpdate(value_loss, tau=cfg.value.target_update_rate)
+    value_optim = torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=cfg.value.lr, fused=True)
+    guide_optim = torch.optim.Adam(guide_loss.parameters(), lr=cfg.guide.lr, fused=True)
+    actor = make_tels_actor(tsidm, guide, env.action_spec)
+
+    def update(batch, step):
+        # Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V.
+        value_losses = value_loss(batch)
+        check_finite(value_losses, "stage 2 (value)", step)
+        value_optim.zero_grad()
+        value_losses["loss_value"].backward()
+        value_optim.step()
+        guide_losses = guide_loss(batch)
+        check_finite(guide_losses, "stage 2 (guide)", step)
+        guide_optim.zero_grad()
+        sum_losses(guide_losses).backward()
+        guide_optim.step()
+        target_updater.step()
+        return value_losses, guide_losses
+
+    start, evaluations, policy_history = 0, [], {}
+    if state.get("stage") == "policy" and state.get("step", 0) > 0:
+        value_loss.load_state_dict(state["value_loss"])
+        guide_loss.load_state_dict(state["guide_loss"])
+        value_optim.load_state_dict(state["value_optim"])
+        guide_optim.load_state_dict(state["guide_optim"])
+        set_rng_state(state["rng"])
+        start, evaluations, policy_history = state["step"], state["evaluations"], state["policy_history"]
+    else:
+        torch.manual_seed(cfg.seed + 1000)
+
+    start_time = time.perf_counter() - wall.get("policy_s", 0.0)
+    eval_time = wall.get("eval_s", 0.0)
+    progress = tqdm.tqdm(range(start, cfg.optim.steps), desc="stage 2: value + guide", file=sys.stdout,
+                         initial=start, total=cfg.optim.steps, mininterval=2.0)
+    for step in progress:
+        value_losses, guide_losses = update(buffer.sample(), step)
+        if (step + 1) % cfg.logger.log_interval == 0:
+            scalars = {f"value/{k}": v.item() for k, v in value_losses.items()}
+            scalars.update({f"guide/{k}": v.item() for k, v in guide_losses.items()})
+            for key, value in scalars.items():
+                policy_history.setdefault(key, []).append((step + 1, value))
+            logger.log_scalars(scalars, step + 1)
+        if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.optim.steps:
+            eval_start = time.perf_counter()
+            actor.eval()
+            returns = evaluate_policy(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
+                                      seed=cfg.seed * 100_000 + (step + 1))
+            scores = [normalized_score(task, r) for r in returns]
+            evaluations.append({"step": step + 1, "returns": returns, "scores": scores,
+                                "score": sum(scores) / len(scores)})
+            logger.log_scalars({"eval/return": sum(returns) / len(returns),
+                                "eval/normalized_score": evaluations[-1]["score"]}, step + 1)
+            eval_time += time.perf_counter() - eval_start
+            progress.set_postfix(score=f"{evaluations[-1]['score']:.1f}")
+        if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.optim.steps:
+            wall.update(policy_s=time.perf_counter() - start_time, eval_s=eval_time)
+            save_training_state(run_dir / "state.pt", {
+                "stage": "policy", "step": step + 1, "wandb_id": logger.wandb_id, "wall": wall,
+                "value_loss": value_loss.state_dict(), "guide_loss": guide_loss.state_dict(),
+                "value_optim": value_optim.state_dict(), "guide_optim": guide_optim.state_dict(),
+                "rng": get_rng_state(), "evaluations": evaluations, "policy_history": policy_history,
+                "tsidm_history": tsidm_history, "beta_results": beta_results,
+            })
+    wall.update(policy_s=time.perf_counter() - start_time, eval_s=eval_time)
+    policy_steps = cfg.optim.steps - start
+
+    # --------------------------------------------------------------- results
+    last = evaluations[-cfg.eval.last_n:]
+    final = torch.tensor([e["score"] for e in last])
+    tsidm_steps = cfg.tsidm.steps or cfg.tsidm.epochs * math.ceil(len(data) / cfg.tsidm.batch_size)
+    results = {
+        "dataset": str(dataset_name),
+        "task": task.name,
+        "env": task.env_id,
+        "seed": cfg.seed,
+        "beta": chosen_beta,
+        "beta_results": beta_results,
+        "final_normalized_score_mean": final.mean().item(),
+        "final_normalized_score_std": final.std(unbiased=False).item(),
+        "final_over_last_n_evaluations": len(last),
+        "evaluations": evaluations,
+        "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall["eval_s"]},
+        "steps_per_s": {
+            "tsidm": tsidm_steps * len(beta_results or [None]) / wall["tsidm_s"] if wall.get("tsidm_s") else None,
+            "policy_including_eval": policy_steps / wall["policy_s"] if policy_steps else None,
+            "policy_excluding_eval": policy_steps / max(wall["policy_s"] - (wall["eval_s"]), 1e-9) if policy_steps else None,
+        },
+    }
+    write_json(run_dir / "results.json", results)
+    save_training_state(run_dir / "state.pt", {"stage": "done", "step": cfg.optim.steps, "wall": wall})
+    plot_curves({k: v for k, v in tsidm_history.items()}, run_dir / "tsidm_losses.png",
+                title="TS-IDM training loss per term (unweighted)", logy=True)
+    plot_curves({k: v for k, v in policy_history.items() if "loss" in k}, run_dir / "policy_losses.png",
+                title="latent value and guide losses")
+    plot_curves({"normalized score": [(e["step"], e["score"]) for e in evaluations]},
+                run_dir / "eval_scores.png", title=f"TELS on {dataset_name}", ylabel="D4RL normalized score")
+    logger.close()
+    print(f"final normalized score {results['final_normalized_score_mean']:.1f} "
+          f"± {results['final_normalized_score_std']:.1f} (mean of last {len(last)} evaluations); "
+          f"outputs in {run_dir}")
+    return results
+
+
+if __name__ == "__main__":
+    main()

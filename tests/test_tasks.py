@@ -1,0 +1,166 @@
+"""Task registry and D4RL normalized scores."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import torchrl_tels.data.tasks as tasks_module
+from torchrl_tels.data import (
+    Task,
+    get_task,
+    list_tasks,
+    load_dataset,
+    normalized_score,
+    register_task,
+)
+
+SHARED_D4RL = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "d4rl-10k"
+
+# Gymnasium flags the v4 MuJoCo tasks as old; they are the ones D4RL v2 matches.
+pytestmark = pytest.mark.filterwarnings("ignore:.*is out of date:DeprecationWarning")
+
+
+@pytest.fixture
+def clean_registry(monkeypatch):
+    """Let a test register tasks without leaking them to other tests."""
+    monkeypatch.setattr(tasks_module, "_TASKS", dict(tasks_module._TASKS))
+
+
+@pytest.mark.parametrize(
+    "name, env_id, ref_min, ref_max, obs_dim, act_dim",
+    [
+        ("hopper-medium-v2", "Hopper-v4", -20.272305, 3234.3, 11, 3),
+        ("hopper-medium-replay-v2", "Hopper-v4", -20.272305, 3234.3, 11, 3),
+        ("halfcheetah-medium-v2", "HalfCheetah-v4", -280.178953, 12135.0, 17, 6),
+        ("walker2d-medium-v2", "Walker2d-v4", 1.629008, 4592.3, 17, 6),
+        ("antmaze-umaze-v0", "AntMaze_UMaze-v5", 0.0, 1.0, 29, 8),
+        ("mujoco/hopper/medium-v0", "Hopper-v5", -20.272305, 3234.3, 11, 3),
+        ("mujoco/walker2d/expert-v0", "Walker2d-v5", 1.629008, 4592.3, 17, 6),
+        ("D4RL/antmaze/umaze-v1", "AntMaze_UMaze-v4", 0.0, 1.0, 31, 8),
+    ],
+)
+def test_registered_tasks(name, env_id, ref_min, ref_max, obs_dim, act_dim):
+    task = get_task(name)
+    assert task.name == name and task.dataset == name
+    assert task.env_id == env_id
+    assert (task.ref_min_score, task.ref_max_score) == (ref_min, ref_max)
+    assert (task.observation_dim, task.action_dim) == (obs_dim, act_dim)
+
+
+def test_subset_suffix_and_case():
+    task = get_task("hopper-medium-v2-10k")
+    assert task.name == task.dataset == "hopper-medium-v2-10k"
+    assert task.env_id == "Hopper-v4" and task.ref_max_score == 3234.3
+    assert get_task("walker2d-medium-v2-5k").env_id == "Walker2d-v4"
+    assert get_task("Hopper-Medium-V2").env_id == "Hopper-v4"
+
+
+def test_unknown_task_lists_known_ones():
+    with pytest.raises(ValueError) as info:
+        get_task("pong-medium-v2")
+    message = str(info.value)
+    assert "Unknown task 'pong-medium-v2'" in message
+    for known in ("hopper-medium-v2", "walker2d-medium-v2", "mujoco/hopper/medium-v0"):
+        assert known in message
+    with pytest.raises(ValueError, match="Unknown task 'pong-medium-v2-10k'"):
+        get_task("pong-medium-v2-10k")
+
+
+@pytest.mark.parametrize("env_family", ["Hopper", "HalfCheetah", "Walker2d"])
+def test_mujoco_task_dims_match_env(env_family):
+    task = get_task(f"{env_family.lower()}-medium-v2")
+    env = gym.make(task.env_id)
+    try:
+        assert env.observation_space.shape == (task.observation_dim,)
+        assert env.action_space.shape == (task.action_dim,)
+        assert env.spec.max_episode_steps == task.max_episode_steps
+    finally:
+        env.close()
+
+
+@pytest.mark.skipif(not SHARED_D4RL.is_dir(), reason="../shared datasets absent")
+@pytest.mark.parametrize(
+    "name",
+    [
+        "hopper-medium-v2-10k",
+        "halfcheetah-medium-v2-10k",
+        "walker2d-medium-v2-10k",
+        "hopper-medium-replay-v2-10k",
+        "antmaze-umaze-v0-10k",
+    ],
+)
+def test_task_dims_match_shared_data(name):
+    task = get_task(name)
+    data = load_dataset(task.dataset)
+    assert data["observation"].shape[-1] == task.observation_dim
+    assert data["action"].shape[-1] == task.action_dim
+
+
+def test_normalized_score_hand_computed():
+    # 100 * (1000 + 20.272305) / (3234.3 + 20.272305) = 31.348890...
+    assert normalized_score("hopper-medium-v2", 1000.0) == pytest.approx(
+        31.3488904, abs=1e-6
+    )
+    # 100 * (4000 + 280.178953) / (12135 + 280.178953) = 34.475370...
+    assert normalized_score(get_task("halfcheetah-medium-v2"), 4000.0) == pytest.approx(
+        34.4753706, abs=1e-6
+    )
+    # 100 * (2000 - 1.629008) / (4592.3 - 1.629008) = 43.531130...
+    assert normalized_score("walker2d-medium-v2-10k", 2000.0) == pytest.approx(
+        43.5311308, abs=1e-6
+    )
+    assert normalized_score("antmaze-umaze-v0", 0.5) == pytest.approx(50.0)
+    assert normalized_score("hopper-medium-v2", -20.272305) == pytest.approx(0.0)
+    assert normalized_score("hopper-medium-v2", 3234.3) == pytest.approx(100.0)
+
+
+def test_normalized_score_arrays_and_tensors():
+    returns = np.array([-20.272305, 3234.3])
+    np.testing.assert_allclose(
+        normalized_score("hopper-medium-v2", returns), [0.0, 100.0]
+    )
+    scores = normalized_score("antmaze-umaze-v0", torch.tensor([0.0, 0.25, 1.0]))
+    assert isinstance(scores, torch.Tensor)
+    torch.testing.assert_close(scores, torch.tensor([0.0, 25.0, 100.0]))
+
+
+def test_register_task(clean_registry):
+    task = Task(
+        "pendulum-random-v0",
+        "Pendulum-v1",
+        -1500.0,
+        -150.0,
+        3,
+        1,
+        max_episode_steps=200,
+    )
+    assert task.dataset == "pendulum-random-v0"
+    register_task(task, aliases=["local/pendulum/random-v0"])
+    assert get_task("pendulum-random-v0") is task
+    alias = get_task("local/pendulum/random-v0")
+    assert alias.env_id == "Pendulum-v1" and alias.dataset == "pendulum-random-v0"
+    assert "pendulum-random-v0" in list_tasks()
+    assert normalized_score("pendulum-random-v0", -825.0) == pytest.approx(50.0)
+    assert get_task("pendulum-random-v0-20k").dataset == "pendulum-random-v0-20k"
+
+    with pytest.raises(
+        ValueError, match=r"\['pendulum-random-v0'\] already registered"
+    ):
+        register_task(task)
+    replacement = Task("pendulum-random-v0", "Pendulum-v1", -1200.0, 0.0, 3, 1)
+    register_task(replacement, overwrite=True)
+    assert get_task("pendulum-random-v0").ref_min_score == -1200.0
+
+
+def test_register_task_leaves_no_trace():
+    assert "pendulum-random-v0" not in list_tasks()
+
+
+def test_task_rejects_bad_reference_scores():
+    with pytest.raises(ValueError, match="must be greater than ref_min_score"):
+        Task("bad-v0", "Pendulum-v1", 10.0, 10.0, 3, 1)

@@ -1,0 +1,120 @@
+"""Small pieces the TELS recipe shares: loss sums, NaN guards, resumable state, plots."""
+from __future__ import annotations
+
+import json
+import os
+import random
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_tels.checkpoint import atomic_save, load_checkpoint
+
+__all__ = [
+    "NonFiniteLossError",
+    "TRAINING_STATE_FORMAT",
+    "check_finite",
+    "get_rng_state",
+    "load_training_state",
+    "plot_curves",
+    "save_training_state",
+    "set_rng_state",
+    "sum_losses",
+    "write_json",
+]
+
+TRAINING_STATE_FORMAT = "torchrl_tels.training_state/v1"
+
+
+class NonFiniteLossError(FloatingPointError):
+    """A loss term became NaN or inf; the run stops before any weights are saved."""
+
+
+def sum_losses(losses: TensorDictBase) -> torch.Tensor:
+    """The objective a TorchRL loss module reports: the sum of its ``loss_*`` entries."""
+    return sum(value for key, value in losses.items() if key.startswith("loss_"))
+
+
+def check_finite(losses: TensorDictBase, stage: str, step: int) -> None:
+    """Raises :class:`NonFiniteLossError` naming the term and step if any ``loss_*`` is not finite."""
+    for key, value in losses.items():
+        if key.startswith("loss_") and not torch.isfinite(value).all():
+            raise NonFiniteLossError(
+                f"{stage}: {key} became {value.item()} at step {step}; the run stops here "
+                f"and the last good checkpoint is kept unchanged."
+            )
+
+
+def get_rng_state() -> dict[str, Any]:
+    """Every RNG the training loop draws from (replay sampling, dropout, numpy, python)."""
+    py_state = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": torch.from_numpy(np.random.get_state()[1].astype(np.int64)),
+        "numpy_pos": int(np.random.get_state()[2]),
+        "python": [int(x) for x in py_state[1]],
+        "python_pos": py_state[2] if py_state[2] is None else float(py_state[2]),
+    }
+
+
+def set_rng_state(state: Mapping[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(("MT19937", state["numpy"].numpy().astype(np.uint32), state["numpy_pos"], 0, 0.0))
+    random.setstate((3, tuple(state["python"]), state["python_pos"]))
+
+
+def save_training_state(path: str | os.PathLike, state: Mapping[str, Any]) -> None:
+    """Writes the full training state atomically (temp file + rename)."""
+    atomic_save({"format": TRAINING_STATE_FORMAT, **state}, path)
+
+
+def load_training_state(path: str | os.PathLike) -> dict[str, Any]:
+    """Reads a state written by :func:`save_training_state` (``weights_only=True``)."""
+    return load_checkpoint(path, TRAINING_STATE_FORMAT)
+
+
+def write_json(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
+    """JSON, written to a temporary file and renamed, so a reader never sees half a file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def plot_curves(
+    series: Mapping[str, Sequence[tuple[int, float]]],
+    path: str | os.PathLike,
+    *,
+    title: str,
+    xlabel: str = "step",
+    ylabel: str = "value",
+    logy: bool = False,
+) -> None:
+    """One PNG with a line per named series of ``(step, value)`` pairs, written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, points in series.items():
+        if points:
+            steps, values = zip(*points)
+            ax.plot(steps, values, label=name)
+    if logy:
+        ax.set_yscale("symlog", linthresh=1e-3)
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    if any(series.values()):
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)
