@@ -13,6 +13,7 @@ lands in ``run_dir``: the resolved config, CSV metrics, ``tsidm.pt``,
 """
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
@@ -24,8 +25,9 @@ import tqdm
 from omegaconf import DictConfig, OmegaConf
 from torchrl.objectives import SoftUpdate
 
-from torchrl_tels.config import ConfigError, validate_config
+from torchrl_tels.config import check_same_run, check_writable_folder, ConfigError, training_config, validate_config
 from torchrl_tels.data import (
+    DatasetError,
     get_task,
     load_dataset,
     make_offline_replay_buffer,
@@ -39,7 +41,9 @@ from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLos
 from torchrl_tels.record import RunLogger
 from torchrl_tels.training import (
     check_finite,
+    check_finite_state,
     get_rng_state,
+    is_user_error,
     load_training_state,
     plot_curves,
     save_training_state,
@@ -75,15 +79,14 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
     buffer = make_offline_replay_buffer(data, t.batch_size)
     total_steps = t.steps or t.epochs * math.ceil(len(data) / t.batch_size)
 
-    start = 0
+    start, tail = 0, []  # tail: Eq. (7) over the last 10% of steps, B.5 compares final training losses
     history = {key: [] for key in TSIDM_TERMS}
-    if state.get("stage") == "tsidm" and state.get("candidate") == candidate:
+    if state.get("stage") == "tsidm" and state.get("candidate") == candidate and state.get("step", 0) > 0:
         loss_module.load_state_dict(state["loss"])
         optim.load_state_dict(state["optim"])
         set_rng_state(state["rng"])
-        start, history = state["step"], state["history"]
+        start, history, tail = state["step"], state["history"], state["tail"]
 
-    tail = []  # Eq. (7) over the last 10% of steps: B.5 compares final training losses
     progress = tqdm.tqdm(range(start, total_steps), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
                          initial=start, total=total_steps, mininterval=2.0)
     for step in progress:
@@ -104,30 +107,42 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
             save_training_state(run_dir / "state.pt", {
                 **state, "stage": "tsidm", "candidate": candidate, "step": step + 1,
                 "loss": loss_module.state_dict(), "optim": optim.state_dict(),
-                "rng": get_rng_state(), "history": history,
+                "rng": get_rng_state(), "history": history, "tail": tail,
             })
+    check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total_steps}")
     final_loss = sum(tail) / len(tail) if tail else float("nan")
     return tsidm.eval(), final_loss, history
 
 
 @hydra.main(config_path="config", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
+    """A bad input, a bad checkpoint or a diverged loss ends the run with one ``error:`` line, exit code 2."""
+    try:
+        return train(cfg)
+    except Exception as err:
+        if not is_user_error(err):
+            raise
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+
+
+def train(cfg: DictConfig) -> dict:
     # ----------------------------------------------------------------- setup
     validate_config(cfg)
-    run_dir = Path(hydra.utils.to_absolute_path(cfg.run_dir))
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / ".write_test").touch()
-        (run_dir / ".write_test").unlink()
-    except OSError as err:
-        raise ConfigError(f"run_dir {run_dir} is not writable: {err.strerror}") from None
+    run_config = training_config(cfg)  # stored in every checkpoint; resume=true must match it
+    run_dir = check_writable_folder(hydra.utils.to_absolute_path(cfg.run_dir))
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(cfg.seed)
     state = {}
     if cfg.resume and (run_dir / "state.pt").exists():
         state = load_training_state(run_dir / "state.pt")
+        check_same_run(state.get("config"), run_config, f"checkpoint {run_dir / 'state.pt'}")
+        if state["stage"] == "done" and (run_dir / "results.json").exists():
+            print(f"{run_dir} already finished; nothing to resume")
+            return json.loads((run_dir / "results.json").read_text())
         print(f"resuming {run_dir} at {state['stage']} step {state['step']}")
+    state["config"] = run_config
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode,
                        project=cfg.logger.project, config=OmegaConf.to_container(cfg, resolve=True),
@@ -148,11 +163,15 @@ def main(cfg: DictConfig) -> dict:
     env = make_eval_env(task.env_id)
     env_obs_dim = env.observation_spec["observation"].shape[-1]
     if env_obs_dim != data["observation"].shape[-1] or env.action_spec.shape[-1] != data["action"].shape[-1]:
-        raise ValueError(
+        raise DatasetError(
             f"dataset {dataset_name!r} has observation/action sizes "
             f"{data['observation'].shape[-1]}/{data['action'].shape[-1]} but env {task.env_id} has "
             f"{env_obs_dim}/{env.action_spec.shape[-1]}."
         )
+    for path in ("tsidm.batch_size", "optim.batch_size"):
+        if OmegaConf.select(cfg, path) > len(data):
+            raise DatasetError(f"dataset {dataset_name!r} has {len(data)} transitions, fewer than "
+                               f"{path}={OmegaConf.select(cfg, path)}.")
 
     # ------------------------------------------- stage 1: TS-IDM (Eq. 3-7)
     tsidm_path = run_dir / "tsidm.pt"
@@ -182,7 +201,7 @@ def main(cfg: DictConfig) -> dict:
                 model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
             wall["tsidm_s"] = time.perf_counter() - start_time
             state = {"stage": "tsidm", "candidate": candidate + 1, "step": 0, "beta_results": beta_results,
-                     "wandb_id": logger.wandb_id, "wall": wall}
+                     "wandb_id": logger.wandb_id, "wall": wall, "config": run_config}
             save_training_state(run_dir / "state.pt", state)
         if best is None:
             model = TSIDM.load(run_dir / "best_tsidm.pt")
@@ -192,7 +211,7 @@ def main(cfg: DictConfig) -> dict:
         print(f"stage 1 done: beta={chosen_beta:g}, TS-IDM saved to {tsidm_path}")
         wall["tsidm_s"] = time.perf_counter() - start_time
         state = {"stage": "policy", "step": 0, "wandb_id": logger.wandb_id, "wall": wall,
-                 "tsidm_history": tsidm_history, "beta_results": beta_results}
+                 "tsidm_history": tsidm_history, "beta_results": beta_results, "config": run_config}
         save_training_state(run_dir / "state.pt", state)
     tsidm.eval()
     tsidm.requires_grad_(False)
@@ -203,6 +222,7 @@ def main(cfg: DictConfig) -> dict:
     # Algorithm 1, line 6: the frozen encoder maps the whole dataset once, at write time.
     buffer = make_offline_replay_buffer(data, cfg.optim.batch_size, write_transforms=[TSIDMEncoderTransform(tsidm)])
     latent_dim = tsidm.latent_state_dim
+    torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
     value_net = make_latent_value(latent_dim, cfg.value.num_cells)
     guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells)
     value_loss = LatentExpectileLoss(value_net, expectile=cfg.value.expectile, check_inputs=False)
@@ -241,8 +261,6 @@ def main(cfg: DictConfig) -> dict:
         guide_optim.load_state_dict(state["guide_optim"])
         set_rng_state(state["rng"])
         start, evaluations, policy_history = state["step"], state["evaluations"], state["policy_history"]
-    else:
-        torch.manual_seed(cfg.seed + 1000)
 
     start_time = time.perf_counter() - wall.get("policy_s", 0.0)
     eval_time = wall.get("eval_s", 0.0)
@@ -275,7 +293,7 @@ def main(cfg: DictConfig) -> dict:
                 "value_loss": value_loss.state_dict(), "guide_loss": guide_loss.state_dict(),
                 "value_optim": value_optim.state_dict(), "guide_optim": guide_optim.state_dict(),
                 "rng": get_rng_state(), "evaluations": evaluations, "policy_history": policy_history,
-                "tsidm_history": tsidm_history, "beta_results": beta_results,
+                "tsidm_history": tsidm_history, "beta_results": beta_results, "config": run_config,
             })
     wall.update(policy_s=time.perf_counter() - start_time, eval_s=eval_time)
     policy_steps = cfg.optim.steps - start
@@ -303,7 +321,8 @@ def main(cfg: DictConfig) -> dict:
         },
     }
     write_json(run_dir / "results.json", results)
-    save_training_state(run_dir / "state.pt", {"stage": "done", "step": cfg.optim.steps, "wall": wall})
+    save_training_state(run_dir / "state.pt", {"stage": "done", "step": cfg.optim.steps, "wall": wall,
+                                               "config": run_config})
     plot_curves({k: v for k, v in tsidm_history.items()}, run_dir / "tsidm_losses.png",
                 title="TS-IDM training loss per term (unweighted)", logy=True)
     plot_curves({k: v for k, v in policy_history.items() if "loss" in k}, run_dir / "policy_losses.png",
@@ -318,4 +337,13 @@ def main(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
+    # hydra creates run_dir (its output folder) before main() runs: report an unwritable one as one line too
+    for arg in sys.argv[1:]:
+        key, _, value = arg.lstrip("+").partition("=")
+        if key == "run_dir" and value and "$" not in value:
+            try:
+                check_writable_folder(value, create=False)
+            except ConfigError as err:
+                print(f"error: {err}", file=sys.stderr)
+                sys.exit(2)
     main()

@@ -2,9 +2,23 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
 
-__all__ = ["ConfigError", "validate_config"]
+__all__ = [
+    "ConfigError",
+    "RESUMABLE_KEYS",
+    "check_same_run",
+    "check_writable_folder",
+    "training_config",
+    "validate_config",
+]
+
+#: Top-level config entries that may differ between a run and its ``resume=true``
+#: continuation: they decide where and how a run is logged, not what it computes.
+RESUMABLE_KEYS = ("run_dir", "resume", "threads", "logger", "checkpoint")
 
 
 class ConfigError(ValueError):
@@ -49,11 +63,26 @@ def validate_config(cfg) -> None:
             raise ConfigError(f"{path} must be >= 0, got {_number(cfg, path)}.")
     for path in ("dataset.reward_scale", "dataset.reward_bias"):
         _number(cfg, path)
+    if beta == "auto" and len(cfg.tsidm.beta_candidates) == 0:
+        raise ConfigError("tsidm.beta=auto needs at least one value in tsidm.beta_candidates.")
+    if not 0.0 <= _number(cfg, "tsidm.inverse_dropout") < 1.0:
+        raise ConfigError(f"tsidm.inverse_dropout must lie in [0, 1), got {cfg.tsidm.inverse_dropout}.")
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or cfg.seed < 0:
+        raise ConfigError(f"seed must be an integer >= 0, got {cfg.seed!r}.")
+    cells = [f"tsidm.{name}_cells" for name in ("encoder", "decoder", "inverse", "action_decoder", "dynamics")]
+    for path in cells + ["value.num_cells", "guide.num_cells"]:
+        section, key = path.split(".")
+        value = cfg[section][key]
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or not all(
+            isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value
+        ):
+            raise ConfigError(f"{path} must be a list of positive integers (layer widths), got {value!r}.")
     positive_ints = [
         "tsidm.batch_size", "tsidm.epochs", "optim.steps", "optim.batch_size", "eval.interval",
         "eval.episodes", "eval.last_n", "eval.max_steps", "logger.log_interval", "checkpoint.interval",
     ]
-    for path in positive_ints + ["tsidm.steps", "dataset.size", "threads"]:
+    optional = ["tsidm.steps", "tsidm.latent_state_dim", "tsidm.latent_action_dim", "dataset.size", "threads"]
+    for path in positive_ints + optional:
         value: Any = cfg
         for part in path.split("."):
             value = value[part]
@@ -72,3 +101,65 @@ def validate_config(cfg) -> None:
         section, key = path.split(".")
         if cfg[section][key] not in allowed:
             raise ConfigError(f"{path} must be one of {allowed}, got {cfg[section][key]!r}.")
+
+
+def training_config(cfg) -> dict:
+    """The resolved config without :data:`RESUMABLE_KEYS`: what a run's checkpoints were made with.
+
+    Plain ``dict``/``list``/scalars, so it travels in a ``weights_only`` checkpoint.
+    """
+    from omegaconf import DictConfig, OmegaConf
+
+    container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    return {key: value for key, value in container.items() if key not in RESUMABLE_KEYS}
+
+
+def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    if isinstance(saved, Mapping) and isinstance(current, Mapping):
+        out = []
+        for key in sorted(set(saved) | set(current), key=str):
+            path = f"{prefix}.{key}" if prefix else str(key)
+            out += _differences(saved.get(key, "<absent>"), current.get(key, "<absent>"), path)
+        return out
+    return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
+
+
+def check_same_run(saved: Mapping | None, current: Mapping, where: str) -> None:
+    """Raises :class:`ConfigError` if a checkpoint's :func:`training_config` differs from ``current``.
+
+    A checkpoint from a run with another dataset, task, network size or
+    hyperparameter cannot be continued: the message names what changed.
+    ``saved=None`` (a checkpoint that predates this record) is accepted.
+    """
+    if saved is None:
+        return
+    differences = _differences(saved, current)
+    if differences:
+        shown = "; ".join(differences[:4]) + (f"; and {len(differences) - 4} more" if len(differences) > 4 else "")
+        raise ConfigError(
+            f"{where} was made by a run with another config ({shown}); resume=true needs the "
+            f"same settings (only {', '.join(RESUMABLE_KEYS)} may change), or choose a new run_dir."
+        )
+
+
+def check_writable_folder(folder: str | os.PathLike, name: str = "run_dir", *, create: bool = True) -> Path:
+    """Checks a file can be written in ``folder`` (created if ``create``); :class:`ConfigError` if not.
+
+    With ``create=False`` nothing is made: the nearest existing ancestor must
+    be a folder this process may write into.
+    """
+    folder = Path(folder)
+    try:
+        if not create:
+            ancestor = next(p for p in (folder, *folder.parents) if p.exists())
+            if not ancestor.is_dir():
+                raise NotADirectoryError(20, "Not a directory")
+            if not os.access(ancestor, os.W_OK | os.X_OK):
+                raise PermissionError(13, "Permission denied")
+            return folder
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise ConfigError(f"{name} {folder} is not writable: {err.strerror or err}.") from None
+    return folder

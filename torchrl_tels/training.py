@@ -11,13 +11,17 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_tels.checkpoint import atomic_save, load_checkpoint
+from torchrl_tels.checkpoint import atomic_save, CheckpointError, load_checkpoint
+from torchrl_tels.config import ConfigError
+from torchrl_tels.data.datasets import DatasetError
 
 __all__ = [
     "NonFiniteLossError",
     "TRAINING_STATE_FORMAT",
     "check_finite",
+    "check_finite_state",
     "get_rng_state",
+    "is_user_error",
     "load_training_state",
     "plot_curves",
     "save_training_state",
@@ -30,7 +34,8 @@ TRAINING_STATE_FORMAT = "torchrl_tels.training_state/v1"
 
 
 class NonFiniteLossError(FloatingPointError):
-    """A loss term became NaN or inf; the run stops before any weights are saved."""
+    """A loss term, or a tensor about to be checkpointed, became NaN or inf: the run stops and
+    the last good checkpoint stays as it was."""
 
 
 def sum_losses(losses: TensorDictBase) -> torch.Tensor:
@@ -46,6 +51,49 @@ def check_finite(losses: TensorDictBase, stage: str, step: int) -> None:
                 f"{stage}: {key} became {value.item()} at step {step}; the run stops here "
                 f"and the last good checkpoint is kept unchanged."
             )
+
+
+def _tensors(obj: Any, prefix: str = ""):
+    if isinstance(obj, torch.Tensor):
+        yield prefix, obj
+    elif isinstance(obj, Mapping):
+        for key, value in obj.items():
+            yield from _tensors(value, f"{prefix}.{key}" if prefix else str(key))
+    elif isinstance(obj, (list, tuple)):
+        for index, value in enumerate(obj):
+            yield from _tensors(value, f"{prefix}[{index}]")
+
+
+def check_finite_state(state: Any, what: str) -> None:
+    """Raises :class:`NonFiniteLossError` naming the first floating-point tensor of ``state`` holding NaN/inf.
+
+    Run before a checkpoint is written, so that weights (or optimizer
+    moments) ruined by a non-finite gradient never replace the last good file.
+    """
+    for name, tensor in _tensors(state):
+        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+            raise NonFiniteLossError(
+                f"{what}: {name} holds NaN or inf; it is not written and the last good checkpoint is kept."
+            )
+
+
+def is_user_error(err: BaseException) -> bool:
+    """Whether ``err`` is a deliberate report about the user's input, to be shown as one line.
+
+    That is a :class:`ConfigError`, :class:`DatasetError`, :class:`CheckpointError`
+    or :class:`NonFiniteLossError`, or a ``ValueError`` raised by torchrl_tels
+    itself (an unknown task, a too-large subset...). Anything raised from
+    deeper down (torch, a bug) is not: its traceback is what is needed.
+    """
+    if isinstance(err, (ConfigError, DatasetError, CheckpointError, NonFiniteLossError)):
+        return True
+    if not isinstance(err, ValueError) or err.__traceback__ is None:
+        return False
+    tb = err.__traceback__
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    package = Path(__file__).resolve().parent
+    return package in Path(tb.tb_frame.f_code.co_filename).resolve().parents
 
 
 def get_rng_state() -> dict[str, Any]:
@@ -67,7 +115,8 @@ def set_rng_state(state: Mapping[str, Any]) -> None:
 
 
 def save_training_state(path: str | os.PathLike, state: Mapping[str, Any]) -> None:
-    """Writes the full training state atomically (temp file + rename)."""
+    """Writes the full training state atomically (temp file + rename), refusing NaN/inf tensors."""
+    check_finite_state(state, f"checkpoint {Path(path).name}")
     atomic_save({"format": TRAINING_STATE_FORMAT, **state}, path)
 
 
