@@ -9,7 +9,9 @@ Stage 1 fits the TS-IDM (Eq. 7). Stage 2 encodes the dataset once with the
 frozen encoder and trains the latent value (Eq. 8) and the guide policy
 (Eq. 9 or 10); the policy acts through Eq. (11). Everything a run produces
 lands in ``run_dir``: the resolved config, CSV metrics, ``tsidm.pt``,
-``state.pt`` (for ``resume=true``), ``results.json`` and PNG plots.
+``state.pt`` (for ``resume=true``), ``policy.pt`` (the guide; with ``tsidm.pt``
+it rebuilds the actor: ``torchrl_tels.modules.load_tels_actor``), ``results.json``
+and PNG plots.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ from torchrl_tels.data import (
     subset_trajectories,
 )
 from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
-from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
+from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, save_guide_policy, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
 from torchrl_tels.record import RunLogger
 from torchrl_tels.training import (
@@ -53,6 +55,11 @@ from torchrl_tels.training import (
 )
 
 TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total")
+
+
+def autocast(cfg):
+    """bf16 matmuls on CPU when ``precision=bf16`` (about 2.5x faster here); fp32 otherwise."""
+    return torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
 
 
 def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
@@ -90,7 +97,8 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
     progress = tqdm.tqdm(range(start, total_steps), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
                          initial=start, total=total_steps, mininterval=2.0)
     for step in progress:
-        losses = loss_module(buffer.sample())
+        with autocast(cfg):
+            losses = loss_module(buffer.sample())
         check_finite(losses, f"stage 1 (TS-IDM, beta={beta:g})", step)
         optim.zero_grad()
         sum_losses(losses).backward()
@@ -240,12 +248,14 @@ def train(cfg: DictConfig) -> dict:
 
     def update(batch, step):
         # Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V.
-        value_losses = value_loss(batch)
+        with autocast(cfg):
+            value_losses = value_loss(batch)
         check_finite(value_losses, "stage 2 (value)", step)
         value_optim.zero_grad()
         value_losses["loss_value"].backward()
         value_optim.step()
-        guide_losses = guide_loss(batch)
+        with autocast(cfg):
+            guide_losses = guide_loss(batch)
         check_finite(guide_losses, "stage 2 (guide)", step)
         guide_optim.zero_grad()
         sum_losses(guide_losses).backward()
@@ -277,10 +287,10 @@ def train(cfg: DictConfig) -> dict:
         if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.optim.steps:
             eval_start = time.perf_counter()
             actor.eval()
-            returns = evaluate_policy(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
+            returns, lengths = evaluate_policy(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps, with_lengths=True,
                                       seed=cfg.seed * 100_000 + (step + 1))
             scores = [normalized_score(task, r) for r in returns]
-            evaluations.append({"step": step + 1, "returns": returns, "scores": scores,
+            evaluations.append({"step": step + 1, "returns": returns, "lengths": lengths, "scores": scores,
                                 "score": sum(scores) / len(scores)})
             logger.log_scalars({"eval/return": sum(returns) / len(returns),
                                 "eval/normalized_score": evaluations[-1]["score"]}, step + 1)
@@ -320,6 +330,8 @@ def train(cfg: DictConfig) -> dict:
             "policy_excluding_eval": policy_steps / max(wall["policy_s"] - (wall["eval_s"]), 1e-9) if policy_steps else None,
         },
     }
+    save_guide_policy(run_dir / "policy.pt", guide, latent_dim=latent_dim, mode=cfg.guide.mode,
+                      num_cells=cfg.guide.num_cells, metadata={"results": str(run_dir / "results.json")})
     write_json(run_dir / "results.json", results)
     save_training_state(run_dir / "state.pt", {"stage": "done", "step": cfg.optim.steps, "wall": wall,
                                                "config": run_config})

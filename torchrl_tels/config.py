@@ -7,6 +7,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
+from omegaconf import OmegaConf
+
 __all__ = [
     "ConfigError",
     "RESUMABLE_KEYS",
@@ -96,11 +98,12 @@ def validate_config(cfg) -> None:
         "guide.mode": ("deterministic", "stochastic"),
         "dataset.subset": ("trajectories", "transitions"),
         "logger.wandb_mode": ("online", "offline", "disabled"),
+        "precision": ("fp32", "bf16"),
     }
     for path, allowed in choices.items():
-        section, key = path.split(".")
-        if cfg[section][key] not in allowed:
-            raise ConfigError(f"{path} must be one of {allowed}, got {cfg[section][key]!r}.")
+        value = OmegaConf.select(cfg, path)
+        if value not in allowed:
+            raise ConfigError(f"{path} must be one of {allowed}, got {value!r}.")
 
 
 def training_config(cfg) -> dict:

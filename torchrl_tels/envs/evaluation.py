@@ -25,17 +25,19 @@ def evaluate_policy(
     *,
     seed: int,
     max_steps: int = 1000,
-) -> list[float]:
-    """Undiscounted returns of ``episodes`` deterministic episodes.
+    with_lengths: bool = False,
+) -> list[float] | tuple[list[float], list[int]]:
+    """Undiscounted returns of ``episodes`` deterministic episodes (and their lengths if ``with_lengths``).
 
     Episode ``i`` resets the env with seed ``seed + i``, so a given
     evaluation is reproducible whatever ran before it (a resumed run scores
     the same as an uninterrupted one).
     """
-    returns = []
+    returns, lengths = [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for episode in range(episodes):
             env.set_seed(seed + episode)
             rollout = env.rollout(max_steps, policy, break_when_any_done=True)
             returns.append(rollout["next", "reward"].sum().item())
-    return returns
+            lengths.append(rollout.shape[-1])
+    return (returns, lengths) if with_lengths else returns

@@ -3,9 +3,11 @@ from torchrl_tels.modules.actors import (
     IndependentNormal,
     LATENT_KEY,
     LatentActionHead,
+    load_tels_actor,
     make_guide_policy,
     make_latent_value,
     make_tels_actor,
+    save_guide_policy,
     StateEncoder,
 )
 from torchrl_tels.modules.tsidm import jvp, squared_norm, TSIDM
@@ -18,8 +20,10 @@ __all__ = [
     "StateEncoder",
     "TSIDM",
     "jvp",
+    "load_tels_actor",
     "make_guide_policy",
     "make_latent_value",
     "make_tels_actor",
+    "save_guide_policy",
     "squared_norm",
 ]

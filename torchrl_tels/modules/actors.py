@@ -167,3 +167,54 @@ def make_tels_actor(
         encoder = TensorDictModule(StateEncoder(tsidm), in_keys=[observation_key], out_keys=[latent_key])
         modules.insert(0, encoder)
     return TensorDictSequential(*modules)
+
+
+POLICY_FORMAT = "torchrl_tels.policy/v1"
+
+
+def save_guide_policy(
+    path,
+    guide_policy: TensorDictModule,
+    *,
+    latent_dim: int,
+    mode: str,
+    num_cells: Sequence[int],
+    metadata: dict | None = None,
+) -> None:
+    """Writes the trained guide π_g (and how to rebuild it) atomically; pair it with the run's ``tsidm.pt``."""
+    from torchrl_tels.checkpoint import atomic_save
+
+    atomic_save(
+        {
+            "format": POLICY_FORMAT,
+            "latent_dim": int(latent_dim),
+            "mode": mode,
+            "num_cells": [int(c) for c in num_cells],
+            "state_dict": {k: v.detach().cpu() for k, v in guide_policy.state_dict().items()},
+            "metadata": dict(metadata or {}),
+        },
+        path,
+    )
+
+
+def load_tels_actor(
+    policy_path,
+    tsidm: TSIDM | str,
+    action_spec=None,
+    *,
+    from_latent: bool = False,
+) -> TensorDictSequential:
+    """Rebuilds the Eq. (11) actor from a run's ``policy.pt`` and its TS-IDM (a module or ``tsidm.pt``)."""
+    from torchrl_tels.checkpoint import CheckpointError, load_checkpoint
+
+    if not isinstance(tsidm, TSIDM):
+        tsidm = TSIDM.load(tsidm)
+    payload = load_checkpoint(policy_path, POLICY_FORMAT)
+    if payload["latent_dim"] != tsidm.latent_state_dim:
+        raise CheckpointError(
+            f"guide policy {policy_path} works in a {payload['latent_dim']}-dim latent space, "
+            f"but the TS-IDM's latent state has {tsidm.latent_state_dim} dims: they come from different runs."
+        )
+    guide = make_guide_policy(payload["latent_dim"], payload["mode"], payload["num_cells"])
+    guide.load_state_dict(payload["state_dict"])
+    return make_tels_actor(tsidm, guide, action_spec, from_latent=from_latent)

@@ -1,0 +1,215 @@
+"""A tiny deterministic 2-D point-mass task for learning tests and demos.
+
+The agent is a point in the plane that starts at the origin and must reach
+the goal :math:`g = (1, 1)`. Each step it moves by ``max_step * a`` for an
+action :math:`a \\in [-1, 1]^2` and receives the negative distance to the goal
+from where it lands:
+
+.. math::
+
+    s_{t+1} = \\mathrm{clip}(s_t + 0.1\\, a_t,\\ -B, B), \\qquad
+    r_t = -\\|s_{t+1} - g\\|_2 .
+
+Episodes last :data:`EPISODE_STEPS` steps (a time limit, never a terminal),
+so the return measures how fast the goal is reached and how well the agent
+stays there: standing still scores about -70.7, a uniformly random policy
+about -72, and the straight diagonal run (10 steps, then stay) about -6.4.
+
+Importing this module registers the environment with Gymnasium as
+:data:`ENV_ID` and the evaluation task :data:`TASK_NAME` with
+:func:`~torchrl_tels.data.register_task` (both idempotent), so that
+``python recipes/tels_offline.py dataset.name=<file.npz> dataset.task=pointmass-goal``
+works once the module is imported. :func:`make_point_mass_dataset` writes a
+D4RL-style ``.npz`` of a poor behaviour policy for that task.
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from torchrl_tels.data.tasks import get_task, register_task, Task
+
+__all__ = [
+    "ENV_ID",
+    "EPISODE_STEPS",
+    "GOAL",
+    "OPTIMAL_RETURN",
+    "RANDOM_RETURN",
+    "START",
+    "TASK_NAME",
+    "PointMassGoal",
+    "make_point_mass_dataset",
+    "register_point_mass_env",
+    "register_point_mass_task",
+]
+
+#: Gymnasium id of :class:`PointMassGoal`.
+ENV_ID = "torchrl_tels/PointMassGoal-v0"
+#: Name of the evaluation task registered with :func:`~torchrl_tels.data.register_task`.
+TASK_NAME = "pointmass-goal"
+#: Episode length (Gymnasium ``TimeLimit``).
+EPISODE_STEPS = 50
+START = (0.0, 0.0)
+GOAL = (1.0, 1.0)
+#: The episode terminates when the point comes closer than this to the goal.
+GOAL_RADIUS = 0.2
+#: Largest move per step along each axis (an action of ±1).
+MAX_STEP = 0.1
+#: Positions are clipped to ``[-BOUND, BOUND]^2`` (never reached by sensible policies).
+BOUND = 5.0
+
+
+def _optimal_return() -> float:
+    # Full diagonal steps reach the goal exactly after 10 steps, then stay.
+    start, goal = np.asarray(START), np.asarray(GOAL)
+    steps = int(round(np.max(np.abs(goal - start)) / MAX_STEP))
+    return -sum(float(np.linalg.norm(goal - start)) * (1 - k / steps) for k in range(1, steps + 1))
+
+
+#: Return of the optimal policy (straight diagonal run): about -6.36.
+OPTIMAL_RETURN = _optimal_return()
+#: Mean return of the uniformly random policy (1000 episodes, seed 0): about -72.
+RANDOM_RETURN = -72.11
+
+
+class PointMassGoal(gym.Env):
+    """Deterministic 2-D point mass that must reach a fixed goal.
+
+    Observation: the position ``(x, y)`` (float32). Action: a velocity command
+    in ``[-1, 1]^2`` (clipped), scaled by :data:`MAX_STEP`. Reward: minus the
+    Euclidean distance from the new position to :data:`GOAL`. The episode never
+    terminates; wrap it in a ``TimeLimit`` (``gym.make(ENV_ID)`` does, at
+    :data:`EPISODE_STEPS`). Reset always starts at :data:`START`: the task is
+    fully deterministic, whatever the seed.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.observation_space = spaces.Box(-BOUND, BOUND, shape=(2,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        self._goal = np.asarray(GOAL, dtype=np.float64)
+        self._position = np.asarray(START, dtype=np.float64)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._position = np.asarray(START, dtype=np.float64)
+        return self._position.astype(np.float32), {}
+
+    def step(self, action):
+        action = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
+        self._position = np.clip(self._position + MAX_STEP * action, -BOUND, BOUND)
+        distance = float(np.linalg.norm(self._position - self._goal))
+        return self._position.astype(np.float32), -distance, distance < GOAL_RADIUS, False, {"distance": distance}
+
+
+def register_point_mass_env() -> None:
+    """Register :class:`PointMassGoal` with Gymnasium as :data:`ENV_ID` (no-op if done)."""
+    if ENV_ID not in gym.registry:
+        gym.register(id=ENV_ID, entry_point=PointMassGoal, max_episode_steps=EPISODE_STEPS)
+
+
+def register_point_mass_task() -> Task:
+    """Register (once) and return the evaluation task :data:`TASK_NAME`.
+
+    Its reference returns are the random policy's (normalized score 0) and the
+    optimal policy's (normalized score 100).
+    """
+    register_point_mass_env()
+    try:
+        return get_task(TASK_NAME)
+    except ValueError:
+        pass
+    return register_task(
+        Task(TASK_NAME, ENV_ID, RANDOM_RETURN, OPTIMAL_RETURN, 2, 2, max_episode_steps=EPISODE_STEPS)
+    )
+
+
+def make_point_mass_dataset(
+    path: str | os.PathLike,
+    n_transitions: int = 5000,
+    seed: int = 0,
+    *,
+    heading_strength: float = 0.5,
+) -> float:
+    """Write a D4RL-style ``.npz`` from a poor behaviour policy; return its best episode return.
+
+    The behaviour policy knows nothing of the goal. Each episode draws a
+    heading :math:`u` uniformly on the unit circle and then acts
+    ``heading_strength * u + noise`` at every step, with ``noise`` uniform in
+    ``[-1, 1]^2``, clipped to the action box: a noisy straight walk in a random
+    direction. The data therefore covers a disc around the start that contains
+    the goal, and the whole action box (an inverse dynamics model can be
+    learned), but
+
+    * the few episodes heading towards the goal reach it slowly (about 28
+      steps) and walk past it: the best of 100 episodes scores around -30,
+      against -6.4 for the optimum;
+    * the behaviour's mean action is about zero, so imitation stays near the
+      start (about -70).
+
+    Doing clearly better than the best episode needs what offline RL adds:
+    a value function telling which of the observed next states lead to the
+    goal, and a policy that takes the best of them in every state (stitching
+    the first half of the good episodes to staying put at the goal).
+
+    Episodes last :data:`EPISODE_STEPS` steps and end in ``timeouts`` (there
+    are no terminals); the last one is cut short if ``n_transitions`` is not a
+    multiple of the episode length.
+
+    Args:
+        path: where to write the ``.npz`` (keys ``observations``, ``actions``,
+            ``rewards``, ``next_observations``, ``terminals``, ``timeouts``).
+        n_transitions: number of transitions, at least one episode.
+        seed: seed of the behaviour policy.
+
+    Keyword Args:
+        heading_strength: how strongly an episode follows its heading.
+
+    Returns:
+        The highest undiscounted return among the complete episodes.
+    """
+    if n_transitions < EPISODE_STEPS:
+        raise ValueError(f"n_transitions must be at least one episode ({EPISODE_STEPS}), got {n_transitions}.")
+    rng = np.random.default_rng(seed)
+    env = PointMassGoal()
+    columns = {key: [] for key in ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")}
+    returns = []
+    while len(columns["rewards"]) < n_transitions:
+        obs, _ = env.reset()
+        angle = rng.uniform(0.0, 2 * math.pi)
+        heading = heading_strength * np.array([math.cos(angle), math.sin(angle)])
+        episode_return = 0.0
+        for t in range(EPISODE_STEPS):
+            action = np.clip(heading + rng.uniform(-1.0, 1.0, size=2), -1.0, 1.0).astype(np.float32)
+            next_obs, reward, terminated, _, _ = env.step(action)
+            episode_return += reward
+            complete = terminated or t == EPISODE_STEPS - 1
+            timeout = not terminated and (complete or len(columns["rewards"]) + 1 == n_transitions)
+            for key, value in (("observations", obs), ("actions", action), ("rewards", reward),
+                               ("next_observations", next_obs), ("terminals", terminated), ("timeouts", timeout)):
+                columns[key].append(value)
+            obs = next_obs
+            if terminated or timeout:
+                break
+        if complete:
+            returns.append(episode_return)
+    arrays = {
+        key: np.asarray(values, dtype=bool if key in ("terminals", "timeouts") else np.float32)
+        for key, values in columns.items()
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as file:  # np.savez would append ".npz" to another suffix
+        np.savez(file, **arrays)
+    return float(max(returns)) if returns else -math.inf
+
+
+register_point_mass_env()
+register_point_mass_task()
