@@ -1,0 +1,379 @@
+"""TorchRL's stock offline baselines under the TELS evaluation protocol.
+
+One function, :func:`train_baseline`, trains and evaluates one baseline on one
+offline dataset with one seed and returns a dict laid out like the recipe's
+``results.json``. The losses are TorchRL's own objectives, used as they come:
+
+==============  ==============================================================
+``iql``         :class:`torchrl.objectives.IQLLoss` on raw states
+``iql_latent``  the same IQL on the latent states of a frozen TS-IDM
+                (:class:`~torchrl_tels.envs.TSIDMEncoderTransform`; Fig. 4 left)
+``td3bc``       :class:`torchrl.objectives.TD3BCLoss`
+``bc``          :class:`torchrl.objectives.BCLoss` (deterministic tanh actor, MSE)
+==============  ==============================================================
+
+Hyperparameters (:data:`HYPERPARAMETERS`, each with its source):
+
+* IQL: TorchRL's ``sota-implementations/iql`` offline config: 256x256 ReLU
+  MLPs for actor, twin Q and V; TanhNormal actor (``tanh_loc=False``, scale
+  ``biased_softplus_1.0`` with lower bound 0.1); expectile 0.7, temperature
+  3.0, gamma 0.99, soft target update tau 0.005 on Q, L2 Q loss, Adam lr 3e-4
+  for all three nets, one update of all three per step. States are **not**
+  normalized and rewards are not rescaled, as in that implementation (the IQL
+  paper rescales locomotion rewards; TorchRL's script does not).
+* IQL in latent space: the same, with the networks reading ``"latent"``; the
+  TS-IDM encoder normalizes states itself before encoding.
+* TD3+BC: TorchRL's ``sota-implementations/td3_bc`` config: 256x256 ReLU MLPs,
+  alpha 2.5, policy noise 0.2, noise clip 0.5, actor and target update every
+  2 critic steps, gamma 0.99, tau 0.005 (polyak 0.995), L2 Q loss, Adam lr 3e-4
+  with eps 1e-4. States are normalized with the dataset's mean and std
+  (+1e-3), as in the TD3+BC paper (Fujimoto & Gu, 2021, Sec. 5); TorchRL's
+  script leaves them raw.
+* BC: TD3+BC's actor without its Q term: the same deterministic 256x256 ReLU
+  MLP with a tanh output, the same normalized states, ``BCLoss`` with an L2
+  loss, Adam lr 3e-4.
+
+Protocol (the recipe's, ``recipes/tels_offline.py``): batch 256, an evaluation
+every ``eval_interval`` steps and after the last one, each of
+``eval_episodes`` deterministic episodes through
+:func:`torchrl_tels.envs.evaluate_policy` with seed
+``seed * 100_000 + step``, D4RL-normalized; the final score is the mean of
+the last ``eval_last_n`` (10) evaluations.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn.distributions import NormalParamExtractor
+from torch import nn
+import torchrl
+from torchrl.envs import Compose, DoubleToFloat, ObservationNorm, TransformedEnv
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
+from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
+
+from torchrl_tels.data import get_task, load_dataset, make_offline_replay_buffer, normalized_score
+from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
+from torchrl_tels.training import check_finite
+
+__all__ = ["HYPERPARAMETERS", "METHODS", "train_baseline"]
+
+METHODS = ("iql", "td3bc", "bc", "iql_latent")
+
+_IQL = {
+    "hidden_sizes": [256, 256],
+    "activation": "relu",
+    "lr": 3e-4,
+    "weight_decay": 0.0,
+    "expectile": 0.7,
+    "temperature": 3.0,
+    "gamma": 0.99,
+    "tau": 0.005,
+    "loss_function": "l2",
+    "default_policy_scale": 1.0,
+    "scale_lb": 0.1,
+    "normalize_observations": False,
+    "source": "torchrl sota-implementations/iql/offline_config.yaml (states not normalized, as there)",
+}
+
+#: Each baseline's hyperparameters; ``train_baseline(..., hyperparameters=...)`` overrides entries.
+HYPERPARAMETERS: dict[str, dict[str, Any]] = {
+    "iql": dict(_IQL),
+    "iql_latent": {
+        **_IQL,
+        "source": "as iql, on TS-IDM latents phi_s(s) (TELS paper Fig. 4 left, App. D.1); "
+        "the encoder normalizes states itself",
+    },
+    "td3bc": {
+        "hidden_sizes": [256, 256],
+        "activation": "relu",
+        "lr": 3e-4,
+        "adam_eps": 1e-4,
+        "weight_decay": 0.0,
+        "alpha": 2.5,
+        "policy_noise": 0.2,
+        "noise_clip": 0.5,
+        "policy_update_delay": 2,
+        "gamma": 0.99,
+        "tau": 0.005,
+        "loss_function": "l2",
+        "normalize_observations": True,
+        "source": "torchrl sota-implementations/td3_bc/config.yaml; state normalization "
+        "(mean/std + 1e-3) from the TD3+BC paper",
+    },
+    "bc": {
+        "hidden_sizes": [256, 256],
+        "activation": "relu",
+        "lr": 3e-4,
+        "loss_function": "l2",
+        "normalize_observations": True,
+        "source": "TD3+BC's actor, normalization and optimizer without the Q term; torchrl BCLoss (MSE)",
+    },
+}
+
+_OBS_NORM_EPS = 1e-3  # TD3+BC paper: std + 1e-3
+
+
+def _mlp(in_features: int, out_features: int, hidden_sizes) -> MLP:
+    return MLP(in_features=in_features, out_features=out_features, num_cells=list(hidden_sizes),
+               activation_class=nn.ReLU)
+
+
+def _deterministic_actor(obs_key: str, obs_dim: int, action_spec, hp) -> TensorDictSequential:
+    """TD3+BC's actor (also BC's): an MLP whose output is squashed into the action box by TanhModule."""
+    return TensorDictSequential(
+        TensorDictModule(_mlp(obs_dim, action_spec.shape[-1], hp["hidden_sizes"]), in_keys=[obs_key],
+                         out_keys=["param"]),
+        TanhModule(in_keys=["param"], out_keys=["action"], spec=action_spec),
+    )
+
+
+def _build_iql(obs_key, obs_dim, action_spec, hp):
+    act_dim = action_spec.shape[-1]
+    actor_net = nn.Sequential(
+        _mlp(obs_dim, 2 * act_dim, hp["hidden_sizes"]),
+        NormalParamExtractor(scale_mapping=f"biased_softplus_{hp['default_policy_scale']}",
+                             scale_lb=hp["scale_lb"]),
+    )
+    actor = ProbabilisticActor(
+        TensorDictModule(actor_net, in_keys=[obs_key], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        spec=action_spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high, "tanh_loc": False},
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+    qvalue = ValueOperator(_mlp(obs_dim + act_dim, 1, hp["hidden_sizes"]), in_keys=[obs_key, "action"])
+    value = ValueOperator(_mlp(obs_dim, 1, hp["hidden_sizes"]), in_keys=[obs_key])
+    loss = IQLLoss(actor, qvalue, value_network=value, loss_function=hp["loss_function"],
+                   temperature=hp["temperature"], expectile=hp["expectile"])
+    loss.make_value_estimator(gamma=hp["gamma"])
+    target = SoftUpdate(loss, tau=hp["tau"])
+    params = [loss.actor_network_params, loss.qvalue_network_params, loss.value_network_params]
+    optim = torch.optim.Adam([p for group in params for p in group.values(True, True)], lr=hp["lr"],
+                             weight_decay=hp["weight_decay"])
+
+    def update(batch, step):
+        losses = loss(batch)
+        check_finite(losses, "IQL", step)
+        optim.zero_grad(set_to_none=True)
+        (losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_value"]).backward()
+        optim.step()
+        target.step()
+
+    return actor, update
+
+
+def _build_td3bc(obs_key, obs_dim, action_spec, hp):
+    actor = _deterministic_actor(obs_key, obs_dim, action_spec, hp)
+    qvalue = ValueOperator(_mlp(obs_dim + action_spec.shape[-1], 1, hp["hidden_sizes"]),
+                           in_keys=["action", obs_key])
+    loss = TD3BCLoss(actor, qvalue, num_qvalue_nets=2, loss_function=hp["loss_function"], delay_actor=True,
+                     delay_qvalue=True, action_spec=action_spec, policy_noise=hp["policy_noise"],
+                     noise_clip=hp["noise_clip"], alpha=hp["alpha"])
+    loss.make_value_estimator(gamma=hp["gamma"])
+    target = SoftUpdate(loss, tau=hp["tau"])
+    kwargs = {"lr": hp["lr"], "eps": hp["adam_eps"], "weight_decay": hp["weight_decay"]}
+    critic_optim = torch.optim.Adam(list(loss.qvalue_network_params.values(True, True)), **kwargs)
+    actor_optim = torch.optim.Adam(list(loss.actor_network_params.values(True, True)), **kwargs)
+
+    def update(batch, step):
+        # TorchRL's td3_bc script: the critic every step; the actor and both targets every `delay` steps.
+        q_loss, _ = loss.qvalue_loss(batch)
+        check_finite({"loss_qvalue": q_loss}, "TD3+BC", step)
+        critic_optim.zero_grad(set_to_none=True)
+        q_loss.backward()
+        critic_optim.step()
+        if step % hp["policy_update_delay"] == 0:
+            actor_loss, _ = loss.actor_loss(batch)
+            check_finite({"loss_actor": actor_loss}, "TD3+BC", step)
+            actor_optim.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            actor_optim.step()
+            target.step()
+
+    return actor, update
+
+
+def _build_bc(obs_key, obs_dim, action_spec, hp):
+    actor = _deterministic_actor(obs_key, obs_dim, action_spec, hp)
+    loss = BCLoss(actor, loss_function=hp["loss_function"])
+    optim = torch.optim.Adam(loss.parameters(), lr=hp["lr"])
+
+    def update(batch, step):
+        losses = loss(batch)
+        check_finite(losses, "BC", step)
+        optim.zero_grad(set_to_none=True)
+        losses["loss_bc"].backward()
+        optim.step()
+
+    return actor, update
+
+
+_BUILDERS = {"iql": _build_iql, "iql_latent": _build_iql, "td3bc": _build_td3bc, "bc": _build_bc}
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def machine_info() -> dict:
+    """What a speed figure needs next to it."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "torchrl": torchrl.__version__,
+    }
+
+
+def train_baseline(
+    method: str,
+    dataset: str,
+    *,
+    steps: int,
+    seed: int = 0,
+    batch_size: int = 256,
+    eval_interval: int = 5000,
+    eval_episodes: int = 10,
+    eval_last_n: int = 10,
+    eval_max_steps: int = 1000,
+    threads: int | None = None,
+    tsidm_path: str | Path | None = None,
+    hyperparameters: Mapping[str, Any] | None = None,
+    log_fn: Callable[[Mapping[str, float], int], None] | None = None,
+    progress: bool = True,
+) -> dict:
+    """Trains one TorchRL baseline on ``dataset`` for ``steps`` gradient steps and evaluates it.
+
+    Args:
+        method: ``"iql"``, ``"td3bc"``, ``"bc"`` or ``"iql_latent"``.
+        dataset: a dataset name for :func:`~torchrl_tels.data.load_dataset`
+            (e.g. ``"hopper-medium-v2-10k"``); its task gives the evaluation env
+            and the D4RL reference returns.
+
+    Keyword Args:
+        steps: gradient steps (one batch each; for TD3+BC, critic steps).
+        seed: seeds torch, the replay buffer's sampler and the evaluation episodes.
+        batch_size: transitions per step (256, as the recipe).
+        eval_interval, eval_episodes, eval_last_n, eval_max_steps: the
+            evaluation protocol, as the recipe's ``eval.*``.
+        threads: torch intra-op threads; ``None`` keeps torch's setting.
+        tsidm_path: the TS-IDM file (``tsidm.pt`` of a TELS run) for ``iql_latent``.
+        hyperparameters: overrides of :data:`HYPERPARAMETERS` ``[method]``.
+        log_fn: called with ``({"eval/normalized_score": ..., ...}, step)`` after each evaluation.
+        progress: print one line per evaluation.
+
+    Returns:
+        A dict like the recipe's ``results.json``: ``final_normalized_score_mean``/``_std``
+        (over the last ``eval_last_n`` evaluations), ``evaluations``, ``wall_time_s``,
+        ``steps_per_s`` (``policy_excluding_eval`` leaves evaluation out), the
+        hyperparameters and the budget.
+    """
+    if method not in _BUILDERS:
+        raise ValueError(f"unknown baseline {method!r}; expected one of {', '.join(METHODS)}.")
+    if steps < 1 or eval_interval < 1 or eval_episodes < 1 or eval_last_n < 1:
+        raise ValueError("steps, eval_interval, eval_episodes and eval_last_n must be positive.")
+    unknown = set(hyperparameters or {}) - set(HYPERPARAMETERS[method])
+    if unknown:
+        raise ValueError(f"unknown {method} hyperparameter(s) {sorted(unknown)}.")
+    hp = {**copy.deepcopy(HYPERPARAMETERS[method]), **dict(hyperparameters or {})}
+    if threads:
+        torch.set_num_threads(int(threads))
+    start_time = time.perf_counter()
+    torch.manual_seed(seed)
+
+    data = load_dataset(dataset)
+    task = get_task(Path(str(dataset)).stem)
+    env = make_eval_env(task.env_id)
+    action_spec = env.action_spec_unbatched
+    obs_dim = data["observation"].shape[-1]
+    extra: dict[str, Any] = {}
+
+    if method == "iql_latent":
+        if tsidm_path is None:
+            raise ValueError("iql_latent needs tsidm_path, the TS-IDM file of a TELS run (run_dir/tsidm.pt).")
+        tsidm_path = Path(tsidm_path)
+        encoder = TSIDMEncoderTransform.from_checkpoint(tsidm_path, observation_dim=obs_dim)
+        obs_key, net_in_dim = "latent", encoder.latent_state_dim
+        # Write time: the dataset is encoded once; the env encodes each observation with a clone.
+        write_transforms = [encoder]
+        env = TransformedEnv(env, encoder.clone())
+        extra["tsidm"] = {"path": str(tsidm_path), "sha256": _sha256(tsidm_path),
+                          "latent_state_dim": encoder.latent_state_dim}
+    elif hp["normalize_observations"]:
+        obs = data["observation"]
+        loc, scale = obs.mean(0), obs.std(0) + _OBS_NORM_EPS
+        obs_key, net_in_dim = "observation", obs_dim
+        write_transforms = [ObservationNorm(loc=loc, scale=scale, in_keys=["observation", ("next", "observation")],
+                                            standard_normal=True)]
+        env = TransformedEnv(env, Compose(DoubleToFloat(), ObservationNorm(
+            loc=loc.clone(), scale=scale.clone(), in_keys=["observation"], standard_normal=True)))
+    else:
+        obs_key, net_in_dim = "observation", obs_dim
+        write_transforms = []
+        env = TransformedEnv(env, DoubleToFloat())
+
+    buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed)
+    actor, update = _BUILDERS[method](obs_key, net_in_dim, action_spec, hp)
+    setup_s = time.perf_counter() - start_time
+
+    evaluations = []
+    eval_s = 0.0
+    loop_start = time.perf_counter()
+    for step in range(steps):
+        update(buffer.sample(), step)
+        if (step + 1) % eval_interval == 0 or step + 1 == steps:
+            eval_start = time.perf_counter()
+            actor.eval()
+            returns = evaluate_policy(actor, env, eval_episodes, max_steps=eval_max_steps,
+                                      seed=seed * 100_000 + (step + 1))
+            actor.train()
+            scores = [normalized_score(task, r) for r in returns]
+            evaluations.append({"step": step + 1, "returns": returns, "scores": scores,
+                                "score": sum(scores) / len(scores)})
+            eval_s += time.perf_counter() - eval_start
+            if log_fn is not None:
+                log_fn({"eval/return": sum(returns) / len(returns),
+                        "eval/normalized_score": evaluations[-1]["score"]}, step + 1)
+            if progress:
+                print(f"[{method} {task.name} seed {seed}] step {step + 1}/{steps}: normalized score "
+                      f"{evaluations[-1]['score']:.1f}", flush=True)
+    policy_s = time.perf_counter() - loop_start
+
+    last = torch.tensor([e["score"] for e in evaluations[-eval_last_n:]], dtype=torch.float64)
+    return {
+        "method": method,
+        "dataset": str(dataset),
+        "task": task.name,
+        "env": task.env_id,
+        "seed": seed,
+        "final_normalized_score_mean": last.mean().item(),
+        "final_normalized_score_std": last.std(unbiased=False).item(),
+        "final_over_last_n_evaluations": len(last),
+        "evaluations": evaluations,
+        "wall_time_s": {"setup": setup_s, "policy": policy_s, "eval": eval_s,
+                        "total": time.perf_counter() - start_time},
+        "steps_per_s": {
+            "policy_including_eval": steps / policy_s,
+            "policy_excluding_eval": steps / max(policy_s - eval_s, 1e-9),
+        },
+        "torch_threads": torch.get_num_threads(),
+        "budget": {"policy_steps": steps, "batch_size": batch_size, "eval_interval": eval_interval,
+                   "eval_episodes": eval_episodes, "eval_last_n": eval_last_n, "eval_max_steps": eval_max_steps,
+                   "evaluations": len(evaluations), "epochs": steps * batch_size / len(data)},
+        "hyperparameters": hp,
+        **extra,
+    }

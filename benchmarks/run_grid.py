@@ -1,0 +1,551 @@
+"""TELS against TorchRL's offline baselines on the D4RL-10k locomotion sets: run, collect, tabulate.
+
+One command trains and evaluates ONE (method, task, seed) and writes
+``<results-dir>/<method>/<task>/seed<k>.json`` (temp file + rename); a result
+that exists is skipped unless ``--force``, so a grid can be spread over job
+arrays, wandb sweep agents and several sessions::
+
+    python benchmarks/run_grid.py --method iql --task hopper-medium-v2-10k --seed 0 --threads 2
+    python benchmarks/run_grid.py --method=tels --task=walker2d-medium-v2-10k --seed=1   # wandb's ${args} form
+    python benchmarks/run_grid.py --grid --seed 0 1 2            # every missing combination, one after another
+    python benchmarks/run_grid.py --list --seed 0 1 2 > jobs.txt  # one command per missing run (job arrays)
+    python benchmarks/run_grid.py --table                        # TABLE.md and PNGs from what exists
+
+Methods: ``tels`` (``recipes/tels_offline.py`` in a subprocess, its run folder
+kept at ``<work-dir>/tels/<task>/seed<k>`` and resumed if interrupted),
+``iql``, ``td3bc``, ``bc`` (TorchRL's stock losses, ``benchmarks/baselines.py``)
+and ``iql_latent`` (IQL on the latents of the TS-IDM of the TELS run with the
+same task, seed and TS-IDM budget; if there is none, a TS-IDM is trained by
+the recipe alone under ``<work-dir>/tsidm/``). ``--work-dir`` (default
+``runs/benchmarks``, git-ignored) holds those run folders and wandb logs: on a
+cluster, put it and ``--results-dir`` on storage every job shares. Every method gets the same
+policy-step budget (``--steps``, the paper's 100k by default), batch 256 and
+evaluation protocol (``--eval-interval``, ``--eval-episodes``, final score =
+mean of the last 10 evaluations).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+import warnings
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+import yaml
+
+from baselines import machine_info, METHODS as BASELINES, train_baseline
+from torchrl_tels.training import write_json  # temp file + rename: a skip check never sees half a file
+
+REPO = Path(__file__).resolve().parents[1]
+RECIPE = REPO / "recipes" / "tels_offline.py"
+DEFAULT_RESULTS = REPO / "benchmarks" / "results"
+DEFAULT_WORK = REPO / "runs" / "benchmarks"
+
+METHODS = ("tels", *BASELINES)  # tels first: iql_latent reuses its TS-IDM
+TASKS = (
+    "hopper-medium-v2-10k",
+    "hopper-medium-replay-v2-10k",
+    "halfcheetah-medium-v2-10k",
+    "walker2d-medium-v2-10k",
+)
+SEEDS = (0, 1, 2)
+LABELS = {"bc": "BC", "td3bc": "TD3+BC", "iql": "IQL", "iql_latent": "IQL (TS-IDM latent)", "tels": "TELS",
+          "tsrl": "TSRL"}
+TABLE_COLUMNS = ("bc", "td3bc", "iql", "iql_latent", "tels")
+
+#: TELS paper, Table 1: normalized score, mean and std over 5 seeds (final 10 evaluations), same 10k sets.
+PAPER_TABLE1 = {
+    "hopper-medium-v2-10k": {"bc": (29.7, 11.7), "td3bc": (40.1, 18.6), "iql": (46.7, 6.5),
+                             "tsrl": (62.0, 3.7), "tels": (77.3, 10.7)},
+    "hopper-medium-replay-v2-10k": {"bc": (12.1, 5.3), "td3bc": (7.3, 6.1), "iql": (13.4, 3.1),
+                                    "tsrl": (21.8, 8.2), "tels": (43.2, 3.5)},
+    "halfcheetah-medium-v2-10k": {"bc": (26.4, 7.3), "td3bc": (16.4, 10.2), "iql": (29.9, 0.12),
+                                  "tsrl": (38.4, 3.1), "tels": (40.8, 0.6)},
+    "walker2d-medium-v2-10k": {"bc": (15.8, 14.1), "td3bc": (7.4, 13.1), "iql": (22.5, 3.8),
+                               "tsrl": (49.7, 10.6), "tels": (62.4, 5.3)},
+}
+PAPER_POLICY_STEPS = 100_000  # Table 11
+PAPER_TSIDM_EPOCHS = 1000  # Table 10
+EVAL_LAST_N = 10  # Table 1: final 10 evaluations
+BATCH_SIZE = 256
+
+# torchrl's TD3BCLoss warns about its own attribute annotations at construction; nothing to act on.
+warnings.filterwarnings("ignore", message=r".*wasn't part of the annotations.*")
+
+
+# ------------------------------------------------------------------ paths
+def result_path(results_dir: Path, method: str, task: str, seed: int) -> Path:
+    return results_dir / method / task / f"seed{seed}.json"
+
+
+def tels_run_dir(work_dir: Path, task: str, seed: int) -> Path:
+    return work_dir / "tels" / task / f"seed{seed}"
+
+
+# --------------------------------------------------------------- running
+def one_command(args, method: str, task: str, seed: int) -> list[str]:
+    """The single-run command that reproduces (method, task, seed) with this invocation's budget."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), f"--method={method}", f"--task={task}",
+           f"--seed={seed}", f"--steps={args.steps}", f"--eval-interval={args.eval_interval}",
+           f"--eval-episodes={args.eval_episodes}", f"--results-dir={args.results_dir}",
+           f"--work-dir={args.work_dir}"]
+    if args.tsidm_steps is not None:
+        cmd.append(f"--tsidm-steps={args.tsidm_steps}")
+    if args.threads:
+        cmd.append(f"--threads={args.threads}")
+    return cmd
+
+
+def _recipe(overrides: list[str], threads: int | None) -> None:
+    env = dict(os.environ)
+    if threads:
+        env["OMP_NUM_THREADS"] = str(threads)
+    cmd = [sys.executable, str(RECIPE), *overrides]
+    print("$ " + shlex.join(cmd), flush=True)
+    proc = subprocess.run(cmd, cwd=REPO, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError(f"the TELS recipe exited with code {proc.returncode}: {shlex.join(cmd)}")
+
+
+def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str) -> list[str]:
+    overrides = [f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true",
+                 f"logger.wandb_mode={wandb_mode}", f"logger.exp_name=tels_{task}_seed{seed}"]
+    if args.threads:
+        overrides.append(f"threads={args.threads}")
+    if args.tsidm_steps is not None:
+        overrides.append(f"tsidm.steps={args.tsidm_steps}")
+    return overrides
+
+
+def run_tels(task: str, seed: int, args, wandb_mode: str) -> dict:
+    run_dir = tels_run_dir(args.work_dir, task, seed)
+    if args.force and run_dir.exists():
+        shutil.rmtree(run_dir)
+    overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode) + [
+        f"optim.steps={args.steps}", f"optim.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
+        f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}",
+    ]
+    _recipe(overrides, args.threads)
+    results = json.loads((run_dir / "results.json").read_text())
+    return {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
+
+
+def _tsidm_matches(run_dir: Path, task: str, seed: int, tsidm_steps: int | None) -> bool:
+    """Whether the recipe run in ``run_dir`` trained its TS-IDM for this task and seed with this budget."""
+    try:
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return (cfg.get("seed") == seed and cfg.get("dataset", {}).get("name") == task
+            and cfg.get("tsidm", {}).get("steps") == tsidm_steps and not cfg.get("tsidm", {}).get("checkpoint"))
+
+
+def resolve_tsidm(task: str, seed: int, args) -> tuple[Path, str]:
+    """The TS-IDM for iql_latent: the TELS run's if it has the same budget, else one the recipe trains alone."""
+    tels_dir = tels_run_dir(args.work_dir, task, seed)
+    if (tels_dir / "tsidm.pt").exists() and _tsidm_matches(tels_dir, task, seed, args.tsidm_steps):
+        return tels_dir / "tsidm.pt", "TELS run"
+    budget = f"steps{args.tsidm_steps}" if args.tsidm_steps is not None else f"epochs{PAPER_TSIDM_EPOCHS}"
+    run_dir = args.work_dir / "tsidm" / task / f"seed{seed}_{budget}"
+    if not (run_dir / "tsidm.pt").exists():
+        # Stage 1 only: the policy stage is cut to one step with a one-step evaluation.
+        _recipe(_recipe_overrides(task, seed, run_dir, args, "disabled") + [
+            "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.max_steps=1", "eval.last_n=1",
+        ], args.threads)
+    return run_dir / "tsidm.pt", "recipe, stage 1 only"
+
+
+def budget_of(args, method: str) -> dict:
+    budget = {"policy_steps": args.steps, "batch_size": BATCH_SIZE, "eval_interval": args.eval_interval,
+              "eval_episodes": args.eval_episodes, "eval_last_n": EVAL_LAST_N,
+              "paper_policy_steps": PAPER_POLICY_STEPS}
+    if method in ("tels", "iql_latent"):
+        budget["tsidm_steps"] = args.tsidm_steps  # None: the recipe's default, Table 10's 1000 epochs
+        budget["paper_tsidm_epochs"] = PAPER_TSIDM_EPOCHS
+    return budget
+
+
+def run_one(method: str, task: str, seed: int, args) -> Path:
+    out = result_path(args.results_dir, method, task, seed)
+    if out.exists() and not args.force:
+        print(f"skip {method} {task} seed {seed}: {out} exists (--force to redo)", flush=True)
+        return out
+    wandb_mode = args.wandb_mode
+    started = datetime.now(timezone.utc)
+    start = time.perf_counter()
+    print(f"== {method} {task} seed {seed}: {args.steps} policy steps", flush=True)
+    if method == "tels":
+        results = run_tels(task, seed, args, wandb_mode)
+        threads = args.threads or torch.get_num_threads()  # the recipe starts with the same default
+    else:
+        tsidm_path = source = None
+        if method == "iql_latent":
+            tsidm_path, source = resolve_tsidm(task, seed, args)
+        logger = None
+        if wandb_mode != "disabled":
+            from torchrl_tels.record import RunLogger
+
+            logger = RunLogger(args.work_dir / method / task / f"seed{seed}", f"{method}_{task}_seed{seed}",
+                               wandb_mode=wandb_mode,
+                               config={"method": method, "task": task, "seed": seed, **budget_of(args, method)})
+        results = train_baseline(
+            method, task, steps=args.steps, seed=seed, batch_size=BATCH_SIZE, eval_interval=args.eval_interval,
+            eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, threads=args.threads,
+            tsidm_path=tsidm_path, log_fn=logger.log_scalars if logger else None,
+        )
+        if method == "iql_latent":
+            results["tsidm"]["source"] = source
+        if logger is not None:
+            logger.log_scalars({"final_normalized_score_mean": results["final_normalized_score_mean"]}, args.steps)
+            logger.close()
+        threads = results["torch_threads"]
+    record = {
+        **results,
+        "method": method,
+        "task": task,
+        "seed": seed,
+        "command": shlex.join(one_command(args, method, task, seed)),
+        "argv": shlex.join([sys.executable, *sys.argv]),
+        "date": started.isoformat(timespec="seconds"),
+        "elapsed_s": time.perf_counter() - start,
+        "machine": machine_info(),
+        "torch_threads": threads,
+        "budget": {**results.get("budget", {}), **budget_of(args, method)},
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(out, record)
+    print(f"== {method} {task} seed {seed}: final normalized score "
+          f"{record['final_normalized_score_mean']:.1f} -> {out}", flush=True)
+    return out
+
+
+def combos(args):
+    methods = [m for m in METHODS if m in (args.method or METHODS)]
+    for seed in args.seed or SEEDS:
+        for task in args.task or TASKS:
+            for method in methods:
+                yield method, task, seed
+
+
+# ------------------------------------------------------------------- table
+def load_results(results_dir: Path) -> dict:
+    """{task: {method: [record, ...]}} from every ``<method>/<task>/seed<k>.json``."""
+    found: dict[str, dict[str, list]] = {}
+    for method in METHODS:
+        for path in sorted((results_dir / method).glob("*/seed*.json")):
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, json.JSONDecodeError) as err:
+                print(f"warning: skipping unreadable {path}: {err}", file=sys.stderr)
+                continue
+            found.setdefault(path.parent.name, {}).setdefault(method, []).append(record)
+    return found
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    return statistics.fmean(values), statistics.pstdev(values)
+
+
+def _steps_label(steps: int) -> str:
+    return f"{steps // 1000}k" if steps >= 1000 and steps % 1000 == 0 else str(steps)
+
+
+def _budget_cell(by_method: dict) -> str:
+    every_run = [r for runs in by_method.values() for r in runs]
+    policy = sorted({r["budget"]["policy_steps"] for r in every_run})
+    protocol = sorted({(r["budget"]["eval_interval"], r["budget"]["eval_episodes"]) for r in every_run})
+    tsidm = sorted({str(r["budget"].get("tsidm_steps")) for m, runs in by_method.items()
+                    if m in ("tels", "iql_latent") for r in runs})
+    if len(policy) > 1:
+        text = "**budgets differ: " + ", ".join(_steps_label(s) for s in policy) + " steps**"
+    else:
+        text = f"{_steps_label(policy[0])} steps"
+        if policy[0] < PAPER_POLICY_STEPS:
+            text += f" (below the paper's {_steps_label(PAPER_POLICY_STEPS)})"
+    if len(protocol) > 1:
+        text += "; **evaluation protocols differ: " + ", ".join(f"{e} ep. every {i}" for i, e in protocol) + "**"
+    else:
+        text += f"; eval {protocol[0][1]} ep. every {_steps_label(protocol[0][0])}"
+    if tsidm:
+        shown = [f"{PAPER_TSIDM_EPOCHS} epochs" if s == "None" else f"{s} steps" for s in tsidm]
+        text += "; TS-IDM " + " / ".join(shown)
+        if any(s != "None" for s in tsidm):
+            text += f" (paper: {PAPER_TSIDM_EPOCHS} epochs)"
+    return text
+
+
+def render_table(results_dir: Path) -> Path:
+    found = load_results(results_dir)
+    tasks = [t for t in TASKS if t in found] + sorted(t for t in found if t not in TASKS)
+    lines = [
+        "# TELS against TorchRL's offline baselines on the D4RL-10k sets",
+        "",
+        f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} by "
+        f"`python benchmarks/run_grid.py --table` from `{_shown(results_dir)}`.",
+        "",
+        "D4RL normalized score: per seed, the mean of the last 10 evaluations (each of `eval_episodes` "
+        "deterministic episodes); each cell is the mean ± std over seeds (population std), n = seeds, then "
+        "the TELS paper's Table 1 value (mean ± std over 5 seeds, 100k policy steps). "
+        "Every method of a row has the same data, evaluation env, protocol and policy-step budget.",
+        "",
+        "| task | budget | " + " | ".join(LABELS[m] for m in TABLE_COLUMNS) + " | TSRL (paper) |",
+        "|---|---|" + "---|" * (len(TABLE_COLUMNS) + 1),
+    ]
+    for task in tasks:
+        paper = PAPER_TABLE1.get(task, {})
+        cells = []
+        for method in TABLE_COLUMNS:
+            runs = found[task].get(method, [])
+            ours = "—"
+            if runs:
+                mean, std = _mean_std([r["final_normalized_score_mean"] for r in runs])
+                ours = f"**{mean:.1f}** ± {std:.1f} (n={len(runs)})" if len(runs) > 1 else f"**{mean:.1f}** (n=1)"
+            ref = f"{paper[method][0]:.1f} ± {paper[method][1]:.1f}" if method in paper else "—"
+            cells.append(f"{ours} · paper {ref}")
+        tsrl = f"{paper['tsrl'][0]:.1f} ± {paper['tsrl'][1]:.1f}" if "tsrl" in paper else "—"
+        lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
+    if not tasks:
+        lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
+
+    lines += ["", "## Speed", "",
+              "Training steps per second, evaluation excluded (median over runs; TELS: the policy stage, "
+              "and its TS-IDM stage apart), with torch's thread count and the machine each was measured on.",
+              "", "| method | torch threads | machine | runs | policy steps/s | TS-IDM steps/s |",
+              "|---|---|---|---|---|---|"]
+    groups: dict[tuple, list] = {}
+    for task in tasks:
+        for method, runs in found[task].items():
+            for r in runs:
+                machine = r.get("machine", {})
+                key = (METHODS.index(method), method, r.get("torch_threads"),
+                       f"{machine.get('cpu_count')} CPUs, {machine.get('platform', '?')}")
+                groups.setdefault(key, []).append(r)
+    for (_, method, threads, machine), runs in sorted(groups.items(), key=lambda kv: (kv[0][0], str(kv[0][2:]))):
+        policy = [r["steps_per_s"]["policy_excluding_eval"] for r in runs
+                  if r.get("steps_per_s", {}).get("policy_excluding_eval")]
+        tsidm = [r["steps_per_s"]["tsidm"] for r in runs if r.get("steps_per_s", {}).get("tsidm")]
+        policy_cell = f"{statistics.median(policy):.1f}" if policy else "—"
+        tsidm_cell = f"{statistics.median(tsidm):.1f}" if tsidm else "—"
+        lines.append(f"| {LABELS[method]} | {threads or 'default'} | {machine} | {len(runs)} | {policy_cell} | "
+                     f"{tsidm_cell} |")
+
+    plots = render_plots(found, tasks, results_dir / "plots")
+    if plots:
+        lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
+    lines += ["", "Each result JSON holds its command, date, machine, thread count, budget and "
+              "hyperparameters; `python benchmarks/run_grid.py --table` rebuilds this file.", ""]
+    out = results_dir / "TABLE.md"
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    tmp.write_text("\n".join(lines))
+    os.replace(tmp, out)
+    return out
+
+
+def _shown(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(REPO))
+    except ValueError:
+        return str(path)
+
+
+def _save(fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
+    fig.savefig(tmp, dpi=120)
+    os.replace(tmp, path)
+    return path
+
+
+def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
+    """A grouped bar chart per task (ours ± std over seeds, paper values as markers) and learning curves."""
+    if not tasks:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    methods = [m for m in TABLE_COLUMNS if any(m in found[t] for t in tasks)]
+    colors = {m: f"C{i}" for i, m in enumerate(TABLE_COLUMNS)}
+    fig, ax = plt.subplots(figsize=(max(6, 2.2 * len(tasks)), 4))
+    width = 0.8 / max(len(methods), 1)
+    for i, method in enumerate(methods):
+        xs, means, stds, paper_xs, paper_ys = [], [], [], [], []
+        for j, task in enumerate(tasks):
+            x = j + (i - (len(methods) - 1) / 2) * width
+            runs = found[task].get(method, [])
+            if runs:
+                mean, std = _mean_std([r["final_normalized_score_mean"] for r in runs])
+                xs.append(x), means.append(mean), stds.append(std)
+            if method in PAPER_TABLE1.get(task, {}):
+                paper_xs.append(x), paper_ys.append(PAPER_TABLE1[task][method][0])
+        ax.bar(xs, means, width, yerr=stds, capsize=3, color=colors[method], label=LABELS[method])
+        ax.scatter(paper_xs, paper_ys, marker="_", s=250, color="black", zorder=3,
+                   label="paper Table 1" if i == 0 else None)
+    ax.set_xticks(range(len(tasks)), [t.replace("-v2-10k", "") for t in tasks], fontsize=8)
+    ax.set_ylabel("D4RL normalized score")
+    ax.set_title("final score (bars: ours, mean ± std over seeds; black: paper Table 1)", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    paths.append(_save(fig, folder / "scores_by_task.png"))
+    plt.close(fig)
+
+    # Fig. 4 (left) of the paper: the same IQL on raw states and on TS-IDM latents, seeds as dots.
+    if all(any(m in found[t] for t in tasks) for m in ("iql", "iql_latent")):
+        fig, ax = plt.subplots(figsize=(max(5, 1.8 * len(tasks)), 3.5))
+        labelled = set()
+        for i, method in enumerate(("iql", "iql_latent")):
+            for j, task in enumerate(tasks):
+                scores = [r["final_normalized_score_mean"] for r in found[task].get(method, [])]
+                if not scores:
+                    continue
+                x = j + (i - 0.5) * 0.4
+                mean, std = _mean_std(scores)
+                ax.bar(x, mean, 0.4, yerr=std, capsize=3, color=colors[method],
+                       label=None if method in labelled else LABELS[method])
+                ax.scatter([x] * len(scores), scores, s=10, color="black", zorder=3)
+                labelled.add(method)
+        ax.set_xticks(range(len(tasks)), [t.replace("-v2-10k", "") for t in tasks], fontsize=8)
+        ax.set_ylabel("D4RL normalized score")
+        ax.set_title("IQL on raw states vs on TS-IDM latents (dots: seeds)", fontsize=9)
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(_save(fig, folder / "iql_latent_vs_raw.png"))
+        plt.close(fig)
+
+    for task in tasks:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for method in TABLE_COLUMNS:
+            runs = found[task].get(method, [])
+            by_step: dict[int, list[float]] = {}
+            for r in runs:
+                for e in r.get("evaluations", []):
+                    by_step.setdefault(e["step"], []).append(e["score"])
+            if not by_step:
+                continue
+            steps = sorted(by_step)
+            stats = [_mean_std(by_step[s]) for s in steps]
+            mean = [m for m, _ in stats]
+            ax.plot(steps, mean, color=colors[method], label=f"{LABELS[method]} (n={len(runs)})")
+            ax.fill_between(steps, [m - s for m, s in stats], [m + s for m, s in stats], color=colors[method],
+                            alpha=0.2)
+        ax.set_title(f"{task}: evaluations during training (mean ± std over seeds)", fontsize=9)
+        ax.set_xlabel("policy training step")
+        ax.set_ylabel("D4RL normalized score")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(_save(fig, folder / f"curves_{task}.png"))
+        plt.close(fig)
+    return paths
+
+
+# --------------------------------------------------------------------- CLI
+def _split(values: list[str] | None) -> list[str] | None:
+    """``--seed 0 1``, ``--seed 0,1`` and repeated ``--seed=0 --seed=1`` all give ["0", "1"]."""
+    if not values:
+        return None
+    return [v for value in values for v in value.split(",") if v]
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="\n".join(__doc__.splitlines()[2:]))
+    # Every option also takes the underscore spelling, the form a wandb sweep parameter gives (--key=value).
+    parser.add_argument("--method", "--methods", action="extend", nargs="+", metavar="M",
+                        help=f"one of {', '.join(METHODS)} (several with --grid/--list; default all)")
+    parser.add_argument("--task", "--tasks", action="extend", nargs="+", metavar="T",
+                        help="a dataset name (several with --grid/--list; default the four 10k locomotion sets)")
+    parser.add_argument("--seed", "--seeds", action="extend", nargs="+", metavar="K",
+                        help="a seed (several with --grid/--list; default 0 1 2)")
+    parser.add_argument("--steps", type=int, default=PAPER_POLICY_STEPS,
+                        help="policy gradient steps, the same for every method (default: the paper's 100000)")
+    parser.add_argument("--tsidm-steps", "--tsidm_steps", type=int, default=None,
+                        help="TS-IDM steps for tels/iql_latent (default: the recipe's 1000 epochs, Table 10)")
+    parser.add_argument("--eval-interval", "--eval_interval", type=int, default=5000)
+    parser.add_argument("--eval-episodes", "--eval_episodes", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch intra-op threads (and OMP_NUM_THREADS of the recipe); default: torch's")
+    parser.add_argument("--results-dir", "--results_dir", type=Path, default=DEFAULT_RESULTS)
+    parser.add_argument("--work-dir", "--work_dir", type=Path, default=DEFAULT_WORK,
+                        help="TELS run folders, TS-IDM files, wandb logs (default: runs/benchmarks)")
+    parser.add_argument("--force", action="store_true", help="redo runs whose result exists")
+    parser.add_argument("--wandb-mode", "--wandb_mode", choices=("online", "offline", "disabled"),
+                        default="online" if os.environ.get("WANDB_SWEEP_ID") else "disabled",
+                        help="wandb logging of each run (default: online inside a wandb sweep, else disabled)")
+    parser.add_argument("--grid", action="store_true", help="run every missing (method, task, seed), in turn")
+    parser.add_argument("--list", action="store_true", help="print one command per missing run and exit")
+    parser.add_argument("--table", action="store_true", help="render TABLE.md and the PNGs from existing results")
+    args = parser.parse_args(argv)
+    args.method, args.task = _split(args.method), _split(args.task)
+    try:
+        args.seed = [int(s) for s in _split(args.seed) or []] or None
+    except ValueError:
+        parser.error(f"--seed takes integers, got {args.seed}")
+    from torchrl_tels.data import get_task
+
+    for task in args.task or []:
+        try:
+            get_task(Path(task).stem)
+        except ValueError as err:
+            parser.error(str(err))
+    unknown = sorted(set(args.method or []) - set(METHODS))
+    if unknown:
+        parser.error(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    if min(args.steps, args.eval_interval, args.eval_episodes) < 1 or (args.tsidm_steps or 1) < 1:
+        parser.error("--steps, --tsidm-steps, --eval-interval and --eval-episodes must be positive")
+    if args.threads is not None and args.threads < 1:
+        parser.error("--threads must be positive")
+    args.results_dir, args.work_dir = args.results_dir.resolve(), args.work_dir.resolve()
+    single = not (args.grid or args.list or args.table)
+    if single:
+        if not (args.method and args.task and args.seed is not None):
+            parser.error("one run needs --method, --task and --seed (or use --grid, --list, --table)")
+        if len(args.method) > 1 or len(args.task) > 1 or len(args.seed) > 1:
+            parser.error("one run takes one --method, --task and --seed; use --grid for several")
+    args.single = single
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.single:
+        run_one(args.method[0], args.task[0], args.seed[0], args)
+        return 0
+    if args.list:
+        for method, task, seed in combos(args):
+            if args.force or not result_path(args.results_dir, method, task, seed).exists():
+                print(shlex.join(one_command(args, method, task, seed)))
+        return 0
+    failed = []
+    if args.grid:
+        for method, task, seed in combos(args):
+            try:
+                run_one(method, task, seed, args)
+            except KeyboardInterrupt:
+                raise
+            except Exception as err:  # one failed run must not stop a grid that spans hours
+                print(f"!! {method} {task} seed {seed} failed: {type(err).__name__}: {err}", file=sys.stderr)
+                failed.append((method, task, seed))
+    if args.table:
+        print(f"wrote {render_table(args.results_dir)}")
+    if failed:
+        print(f"{len(failed)} run(s) failed: {failed}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
