@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Creates .venv beside this checkout (once) and installs torchrl_tels into it.
+# Creates .venv beside this checkout (once) and installs torchrl_tels into it,
+# with the test and maze extras.
 # torch is installed first, pinned to the CPU build: a bare `torch` requirement
 # on a machine without torch pulls a multi-GB CUDA build.
 set -euo pipefail
@@ -14,5 +15,5 @@ fi
 [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
 "$VENV/bin/python" -m pip install --quiet --upgrade pip
 "$VENV/bin/python" -m pip install --quiet "torch==2.13.0"
-"$VENV/bin/python" -m pip install --quiet -e ".[test]"
+"$VENV/bin/python" -m pip install --quiet -e ".[test,maze]"
 echo "$want" > "$stamp"

@@ -38,7 +38,7 @@ def clean_registry(monkeypatch):
         ("hopper-medium-replay-v2", "Hopper-v4", -20.272305, 3234.3, 11, 3),
         ("halfcheetah-medium-v2", "HalfCheetah-v4", -280.178953, 12135.0, 17, 6),
         ("walker2d-medium-v2", "Walker2d-v4", 1.629008, 4592.3, 17, 6),
-        ("antmaze-umaze-v0", "AntMaze_UMaze-v5", 0.0, 1.0, 29, 8),
+        ("antmaze-umaze-v0", "torchrl_tels/AntMazeUMazeD4RL-v0", 0.0, 1.0, 29, 8),
         ("mujoco/hopper/medium-v0", "Hopper-v5", -20.272305, 3234.3, 11, 3),
         ("mujoco/walker2d/expert-v0", "Walker2d-v5", 1.629008, 4592.3, 17, 6),
         ("D4RL/antmaze/umaze-v1", "AntMaze_UMaze-v4", 0.0, 1.0, 31, 8),

@@ -49,3 +49,5 @@ __all__ = [
     "subsample_transitions",
     "subset_trajectories",
 ]
+
+from torchrl_tels.data import pointmaze  # noqa: E402,F401  (registers the PointMaze eval envs and tasks)

@@ -211,13 +211,13 @@ def _register_defaults() -> None:
     ref_min, ref_max = D4RL_REFERENCE_SCORES["antmaze"]
     for maze in ("umaze", "umaze-diverse"):
         # D4RL observation: torso (x, y) followed by the 27 Gymnasium-Robotics
-        # dims. No stock environment has D4RL's ant dynamics: the evaluation
-        # env must patch AntMaze_UMaze-v5 (see the shared maze-eval notes).
+        # dims. No stock environment has D4RL's ant dynamics: evaluation runs in
+        # torchrl_tels.envs.antmaze's patched AntMaze_UMaze-v5 (maze extra).
         for version in ("v0", "v2"):
             register_task(
                 Task(
                     f"antmaze-{maze}-{version}",
-                    "AntMaze_UMaze-v5",
+                    "torchrl_tels/AntMazeUMazeD4RL-v0",
                     ref_min,
                     ref_max,
                     29,

@@ -1,24 +1,25 @@
 """A tiny deterministic 2-D point-mass task for learning tests and demos.
 
 The agent is a point in the plane that starts at the origin and must reach
-the goal :math:`g = (1, 1)`. Each step it moves by ``max_step * a`` for an
-action :math:`a \\in [-1, 1]^2` and receives the negative distance to the goal
-from where it lands:
+the goal :math:`g = (1, 1)`. Each step it moves by ``0.1 * a`` for an action
+:math:`a \\in [-1, 1]^2` and receives minus its distance to the goal:
 
 .. math::
 
-    s_{t+1} = \\mathrm{clip}(s_t + 0.1\\, a_t,\\ -B, B), \\qquad
-    r_t = -\\|s_{t+1} - g\\|_2 .
+    s_{t+1} = s_t + 0.1\\, a_t, \\qquad r_t = -\\|s_{t+1} - g\\|_2 ,
 
-Episodes last :data:`EPISODE_STEPS` steps (a time limit, never a terminal),
-so the return measures how fast the goal is reached and how well the agent
-stays there: standing still scores about -70.7, a uniformly random policy
-about -72, and the straight diagonal run (10 steps, then stay) about -6.4.
+and the episode terminates once :math:`\\|s_{t+1} - g\\|_2 <` :data:`GOAL_RADIUS`
+(0.2), or is truncated after :data:`EPISODE_STEPS` (50) steps. The return
+measures how fast the goal is reached: the straight diagonal run (9 steps) scores
+:data:`OPTIMAL_RETURN` (about -6.36), standing still about -70.7 and a
+uniformly random policy :data:`RANDOM_RETURN` (about -72.3).
 
 Importing this module registers the environment with Gymnasium as
 :data:`ENV_ID` and the evaluation task :data:`TASK_NAME` with
-:func:`~torchrl_tels.data.register_task` (both idempotent), so that
-``python recipes/tels_offline.py dataset.name=<file.npz> dataset.task=pointmass-goal``
+:func:`~torchrl_tels.data.register_task` (both idempotent), so that::
+
+    python recipes/tels_offline.py dataset.name=<file.npz> dataset.task=pointmass-goal
+
 works once the module is imported. :func:`make_point_mass_dataset` writes a
 D4RL-style ``.npz`` of a poor behaviour policy for that task.
 """
@@ -38,6 +39,7 @@ __all__ = [
     "ENV_ID",
     "EPISODE_STEPS",
     "GOAL",
+    "GOAL_RADIUS",
     "OPTIMAL_RETURN",
     "RANDOM_RETURN",
     "START",
@@ -60,21 +62,13 @@ GOAL = (1.0, 1.0)
 GOAL_RADIUS = 0.2
 #: Largest move per step along each axis (an action of ±1).
 MAX_STEP = 0.1
-#: Positions are clipped to ``[-BOUND, BOUND]^2`` (never reached by sensible policies).
+#: Positions are clipped to ``[-BOUND, BOUND]^2``, far outside anything the task visits.
 BOUND = 5.0
 
-
-def _optimal_return() -> float:
-    # Full diagonal steps reach the goal exactly after 10 steps, then stay.
-    start, goal = np.asarray(START), np.asarray(GOAL)
-    steps = int(round(np.max(np.abs(goal - start)) / MAX_STEP))
-    return -sum(float(np.linalg.norm(goal - start)) * (1 - k / steps) for k in range(1, steps + 1))
-
-
-#: Return of the optimal policy (straight diagonal run): about -6.36.
-OPTIMAL_RETURN = _optimal_return()
-#: Mean return of the uniformly random policy (1000 episodes, seed 0): about -72.
-RANDOM_RETURN = -72.11
+#: Return of the optimal policy, full speed along the diagonal (9 steps): about -6.36.
+OPTIMAL_RETURN = -math.sqrt(2.0) * sum(k / 10 for k in range(1, 10))
+#: Mean return of the uniformly random policy (2000 episodes): about -72.3.
+RANDOM_RETURN = -72.34
 
 
 class PointMassGoal(gym.Env):
@@ -82,10 +76,11 @@ class PointMassGoal(gym.Env):
 
     Observation: the position ``(x, y)`` (float32). Action: a velocity command
     in ``[-1, 1]^2`` (clipped), scaled by :data:`MAX_STEP`. Reward: minus the
-    Euclidean distance from the new position to :data:`GOAL`. The episode never
-    terminates; wrap it in a ``TimeLimit`` (``gym.make(ENV_ID)`` does, at
-    :data:`EPISODE_STEPS`). Reset always starts at :data:`START`: the task is
-    fully deterministic, whatever the seed.
+    Euclidean distance from the new position to :data:`GOAL`. The episode
+    terminates when that distance drops below :data:`GOAL_RADIUS`; the time
+    limit comes from the registration (``gym.make(ENV_ID)`` truncates after
+    :data:`EPISODE_STEPS` steps). Reset always starts at :data:`START`: the task
+    is fully deterministic, whatever the seed.
     """
 
     metadata = {"render_modes": []}
@@ -112,7 +107,7 @@ class PointMassGoal(gym.Env):
 def register_point_mass_env() -> None:
     """Register :class:`PointMassGoal` with Gymnasium as :data:`ENV_ID` (no-op if done)."""
     if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point=PointMassGoal, max_episode_steps=EPISODE_STEPS)
+        gym.register(id=ENV_ID, entry_point=f"{__name__}:PointMassGoal", max_episode_steps=EPISODE_STEPS)
 
 
 def register_point_mass_task() -> Task:
@@ -144,24 +139,25 @@ def make_point_mass_dataset(
     heading :math:`u` uniformly on the unit circle and then acts
     ``heading_strength * u + noise`` at every step, with ``noise`` uniform in
     ``[-1, 1]^2``, clipped to the action box: a noisy straight walk in a random
-    direction. The data therefore covers a disc around the start that contains
-    the goal, and the whole action box (an inverse dynamics model can be
-    learned), but
+    direction. The data covers a disc around the start that contains the goal,
+    and the whole action box (so an inverse dynamics model can be learned),
+    but
 
-    * the few episodes heading towards the goal reach it slowly (about 28
-      steps) and walk past it: the best of 100 episodes scores around -30,
-      against -6.4 for the optimum;
-    * the behaviour's mean action is about zero, so imitation stays near the
-      start (about -70).
+    * only the few episodes (3 to 10 in 100) whose heading points at the goal
+      and whose noise does not push them aside reach it, slowly: with 5000
+      transitions the best episode scores between about -13 and -18 (seeds
+      0-7), against -6.36 for the optimum, and most episodes score below -50;
+    * the behaviour's mean action carries no information about the goal, so
+      imitating it goes nowhere useful (about -70 for standing still).
 
-    Doing clearly better than the best episode needs what offline RL adds:
-    a value function telling which of the observed next states lead to the
-    goal, and a policy that takes the best of them in every state (stitching
-    the first half of the good episodes to staying put at the goal).
+    Doing clearly better than the best episode needs what offline RL adds: a
+    value function that tells which observed next states lead to the goal,
+    and a policy that takes the best of them in every state, stitching the
+    fast moves of many different episodes.
 
-    Episodes last :data:`EPISODE_STEPS` steps and end in ``timeouts`` (there
-    are no terminals); the last one is cut short if ``n_transitions`` is not a
-    multiple of the episode length.
+    Episodes end in ``terminals`` where they reach the goal and in ``timeouts``
+    after :data:`EPISODE_STEPS` steps; the last one is cut short (a timeout)
+    where ``n_transitions`` runs out.
 
     Args:
         path: where to write the ``.npz`` (keys ``observations``, ``actions``,
@@ -173,7 +169,8 @@ def make_point_mass_dataset(
         heading_strength: how strongly an episode follows its heading.
 
     Returns:
-        The highest undiscounted return among the complete episodes.
+        The highest undiscounted return among the complete episodes (those
+        that reached the goal or the time limit).
     """
     if n_transitions < EPISODE_STEPS:
         raise ValueError(f"n_transitions must be at least one episode ({EPISODE_STEPS}), got {n_transitions}.")
