@@ -51,6 +51,21 @@ def _numpy_policy(policy: Any) -> Policy:
     return policy
 
 
+def prepare_minari_dataset_id(dataset_id: str, action_noise: float, overwrite: bool) -> None:
+    """Checks the noise level and frees ``dataset_id`` (only with ``overwrite``) before a collection."""
+    import minari
+
+    if action_noise < 0:
+        raise ValueError(f"action_noise must be >= 0, got {action_noise}.")
+    if dataset_id in minari.list_local_datasets():
+        if not overwrite:
+            raise ValueError(
+                f"A local Minari dataset {dataset_id!r} already exists; pass "
+                "overwrite=True to replace it."
+            )
+        minari.delete_dataset(dataset_id)
+
+
 def collect_minari_dataset(
     env_id: str,
     dataset_id: str,
@@ -111,15 +126,7 @@ def collect_minari_dataset(
     limit = n_episodes if n_episodes is not None else n_steps
     if limit is None or limit <= 0:
         raise ValueError(f"n_episodes/n_steps must be positive, got {limit}.")
-    if action_noise < 0:
-        raise ValueError(f"action_noise must be >= 0, got {action_noise}.")
-    if dataset_id in minari.list_local_datasets():
-        if not overwrite:
-            raise ValueError(
-                f"A local Minari dataset {dataset_id!r} already exists; pass "
-                "overwrite=True to replace it."
-            )
-        minari.delete_dataset(dataset_id)
+    prepare_minari_dataset_id(dataset_id, action_noise, overwrite)
 
     env = gym.make(env_id, **dict(env_kwargs or {}))
     action_space = env.action_space

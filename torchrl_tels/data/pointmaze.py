@@ -56,6 +56,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from torchrl_tels.data.collect import prepare_minari_dataset_id
 from torchrl_tels.data.tasks import Task, register_task
 
 __all__ = [
@@ -356,15 +357,7 @@ def collect_pointmaze_dataset(
     _check_maze(maze)
     if n_steps <= 0:
         raise ValueError(f"n_steps must be positive, got {n_steps}.")
-    if action_noise < 0:
-        raise ValueError(f"action_noise must be >= 0, got {action_noise}.")
-    if dataset_id in minari.list_local_datasets():
-        if not overwrite:
-            raise ValueError(
-                f"A local Minari dataset {dataset_id!r} already exists; pass "
-                "overwrite=True to replace it."
-            )
-        minari.delete_dataset(dataset_id)
+    prepare_minari_dataset_id(dataset_id, action_noise, overwrite)
 
     env = make_pointmaze_env(
         maze,

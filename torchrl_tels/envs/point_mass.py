@@ -20,7 +20,8 @@ Importing this module registers the environment with Gymnasium as
 
     python recipes/tels_offline.py dataset.name=<file.npz> dataset.task=pointmass-goal
 
-works once the module is imported. :func:`make_point_mass_dataset` writes a
+works (``torchrl_tels.envs``, which the recipe imports, imports this module).
+:func:`make_point_mass_dataset` writes a
 D4RL-style ``.npz`` of a poor behaviour policy for that task.
 """
 from __future__ import annotations

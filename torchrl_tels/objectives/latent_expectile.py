@@ -9,14 +9,9 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
-from torchrl.objectives.utils import (
-    _GAMMA_LMBDA_DEPREC_ERROR,
-    dispatch_value_estimator,
-    ValueEstimators,
-)
-from torchrl.objectives.value import ValueEstimatorBase
+from torchrl.objectives.utils import _GAMMA_LMBDA_DEPREC_ERROR, ValueEstimators
 
-from torchrl_tels.objectives._checks import checked_get
+from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin, make_td0_value_estimator
 
 __all__ = ["LatentExpectileLoss", "expectile_loss"]
 
@@ -27,7 +22,7 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     return weight * diff.pow(2)
 
 
-class LatentExpectileLoss(LossModule):
+class LatentExpectileLoss(LazyInKeysMixin, LossModule):
     r"""Expectile regression of a latent state value (paper §3.2, Eq. 8).
 
     .. math::
@@ -124,16 +119,6 @@ class LatentExpectileLoss(LossModule):
             ("next", keys.terminated),
         ]
 
-    @property
-    def in_keys(self):
-        if self._in_keys is None:
-            self._set_in_keys()
-        return self._in_keys
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
-
     def _check(self, tensordict: TensorDictBase) -> None:
         owner = type(self).__name__
         keys = self.tensor_keys
@@ -166,22 +151,4 @@ class LatentExpectileLoss(LossModule):
         )
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
-        if value_type is None:
-            value_type = self.default_value_estimator
-        if isinstance(value_type, ValueEstimatorBase) or (
-            isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
-        ):
-            return LossModule.make_value_estimator(self, value_type, **hyperparams)
-        dispatch_value_estimator(
-            self,
-            value_type,
-            supported=(ValueEstimators.TD0,),
-            tensor_keys={
-                "value_target": self.tensor_keys.value_target,
-                "value": self.tensor_keys.value,
-                "reward": self.tensor_keys.reward,
-                "done": self.tensor_keys.done,
-                "terminated": self.tensor_keys.terminated,
-            },
-            **hyperparams,
-        )
+        return make_td0_value_estimator(self, value_type, hyperparams)

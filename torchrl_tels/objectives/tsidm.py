@@ -11,7 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
 from torchrl_tels.modules.tsidm import jvp, squared_norm, TSIDM
-from torchrl_tels.objectives._checks import checked_get
+from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin
 
 __all__ = ["TSIDMLoss", "TSIDM_ABLATIONS"]
 
@@ -19,7 +19,7 @@ __all__ = ["TSIDMLoss", "TSIDM_ABLATIONS"]
 TSIDM_ABLATIONS = ("ae", "dyn", "ode", "full")
 
 
-class TSIDMLoss(LossModule):
+class TSIDMLoss(LazyInKeysMixin, LossModule):
     r"""The TS-IDM objective of TELS (paper §3.1, Eq. 7).
 
     With :math:`s, s'` normalized by the TS-IDM and :math:`\dot s = s' - s`,
@@ -132,16 +132,6 @@ class TSIDMLoss(LossModule):
             self.tensor_keys.action,
             ("next", self.tensor_keys.observation),
         ]
-
-    @property
-    def in_keys(self):
-        if self._in_keys is None:
-            self._set_in_keys()
-        return self._in_keys
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     @property
     def out_keys(self):

@@ -9,16 +9,11 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
-from torchrl.objectives.utils import (
-    _GAMMA_LMBDA_DEPREC_ERROR,
-    dispatch_value_estimator,
-    ValueEstimators,
-)
-from torchrl.objectives.value import ValueEstimatorBase
+from torchrl.objectives.utils import _GAMMA_LMBDA_DEPREC_ERROR, ValueEstimators
 
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 from torchrl_tels.modules.tsidm import squared_norm, TSIDM
-from torchrl_tels.objectives._checks import checked_get
+from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin, make_td0_value_estimator
 
 __all__ = ["TSymGuideLoss", "value_scale"]
 
@@ -30,7 +25,7 @@ def value_scale(alpha: float, data_values: torch.Tensor, eps: float = 1e-6) -> t
     return alpha / data_values.abs().mean().clamp_min(eps)
 
 
-class TSymGuideLoss(LossModule):
+class TSymGuideLoss(LazyInKeysMixin, LossModule):
     r"""Trains the guide policy :math:`\pi_g` in the TS-IDM latent space (paper §3.2).
 
     Deterministic guide, Eq. (9) (MuJoCo):
@@ -178,16 +173,6 @@ class TSymGuideLoss(LossModule):
         self._in_keys = in_keys
 
     @property
-    def in_keys(self):
-        if self._in_keys is None:
-            self._set_in_keys()
-        return self._in_keys
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
-
-    @property
     def out_keys(self):
         if self.mode == "deterministic":
             keys = ["loss_guide_value", "loss_guide_state"]
@@ -278,22 +263,4 @@ class TSymGuideLoss(LossModule):
         return TensorDict(out, batch_size=[])
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
-        if value_type is None:
-            value_type = self.default_value_estimator
-        if isinstance(value_type, ValueEstimatorBase) or (
-            isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
-        ):
-            return LossModule.make_value_estimator(self, value_type, **hyperparams)
-        dispatch_value_estimator(
-            self,
-            value_type,
-            supported=(ValueEstimators.TD0,),
-            tensor_keys={
-                "value_target": self.tensor_keys.value_target,
-                "value": self.tensor_keys.value,
-                "reward": self.tensor_keys.reward,
-                "done": self.tensor_keys.done,
-                "terminated": self.tensor_keys.terminated,
-            },
-            **hyperparams,
-        )
+        return make_td0_value_estimator(self, value_type, hyperparams)

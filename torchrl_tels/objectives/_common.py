@@ -45,3 +45,51 @@ def checked_get(
             f"{owner}: {key!r} (shape {tuple(value.shape)}) contains {bad} NaN/inf entries."
         )
     return value
+
+
+class LazyInKeysMixin:
+    """``in_keys`` built on first use from ``_set_in_keys``, as torchrl losses do, so ``set_keys`` can rebuild them."""
+
+    _in_keys = None
+
+    @property
+    def in_keys(self):
+        if self._in_keys is None:
+            self._set_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+
+def make_td0_value_estimator(loss, value_type, hyperparams: dict):
+    """The body of ``make_value_estimator`` for losses whose only target is TD(0) on ``V``.
+
+    γ and the other estimator options arrive through ``hyperparams``, as in
+    every torchrl 0.14 loss; the estimator reads the loss's own key names.
+    """
+    from torchrl.objectives.common import LossModule
+    from torchrl.objectives.utils import dispatch_value_estimator, ValueEstimators
+    from torchrl.objectives.value import ValueEstimatorBase
+
+    if value_type is None:
+        value_type = loss.default_value_estimator
+    if isinstance(value_type, ValueEstimatorBase) or (
+        isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase)
+    ):
+        return LossModule.make_value_estimator(loss, value_type, **hyperparams)
+    keys = loss.tensor_keys
+    dispatch_value_estimator(
+        loss,
+        value_type,
+        supported=(ValueEstimators.TD0,),
+        tensor_keys={
+            "value_target": keys.value_target,
+            "value": keys.value,
+            "reward": keys.reward,
+            "done": keys.done,
+            "terminated": keys.terminated,
+        },
+        **hyperparams,
+    )
