@@ -51,6 +51,22 @@ def _numpy_policy(policy: Any) -> Policy:
     return policy
 
 
+def write_minari_dataset(dataset_id: str, episodes: list, env, eval_env=None, **dataset_metadata):
+    """``minari.create_dataset_from_buffers`` without its warnings about optional metadata left empty."""
+    import minari
+
+    with warnings.catch_warnings():
+        # The caller can set these fields through **dataset_metadata.
+        warnings.filterwarnings(
+            "ignore",
+            message=r"`(code_permalink|author|author_email|eval_env)` is set to",
+            category=UserWarning,
+        )
+        return minari.create_dataset_from_buffers(
+            dataset_id, episodes, env=env, eval_env=eval_env, **dataset_metadata
+        )
+
+
 def prepare_minari_dataset_id(dataset_id: str, action_noise: float, overwrite: bool) -> None:
     """Checks the noise level and frees ``dataset_id`` (only with ``overwrite``) before a collection."""
     import minari
@@ -119,8 +135,6 @@ def collect_minari_dataset(
             non-continuous action space, or an existing dataset without
             ``overwrite``.
     """
-    import minari
-
     if (n_episodes is None) == (n_steps is None):
         raise ValueError("Give exactly one of n_episodes and n_steps.")
     limit = n_episodes if n_episodes is not None else n_steps
@@ -204,16 +218,6 @@ def collect_minari_dataset(
             f"{len(episodes)} episodes ({total_steps} steps) of {env_id} recorded "
             f"with policy {policy_name!r}, seed {seed}, by torchrl_tels.",
         )
-        with warnings.catch_warnings():
-            # Minari nags about every optional metadata field left empty; the
-            # caller can set them through **dataset_metadata.
-            warnings.filterwarnings(
-                "ignore",
-                message=r"`(code_permalink|author|author_email|eval_env)` is set to",
-                category=UserWarning,
-            )
-            return minari.create_dataset_from_buffers(
-                dataset_id, episodes, env=env, **dataset_metadata
-            )
+        return write_minari_dataset(dataset_id, episodes, env, **dataset_metadata)
     finally:
         env.close()

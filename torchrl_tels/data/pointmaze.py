@@ -48,7 +48,6 @@ normalized score is the success rate times 100). Gymnasium-Robotics (the
 
 from __future__ import annotations
 
-import warnings
 from collections import deque
 from collections.abc import Mapping
 from typing import Any
@@ -56,7 +55,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from torchrl_tels.data.collect import prepare_minari_dataset_id
+from torchrl_tels.data.collect import prepare_minari_dataset_id, write_minari_dataset
 from torchrl_tels.data.tasks import Task, register_task
 
 __all__ = [
@@ -351,7 +350,6 @@ def collect_pointmaze_dataset(
         ImportError: Gymnasium-Robotics is not installed.
         ValueError: bad arguments, or an existing dataset without ``overwrite``.
     """
-    import minari
     from minari.data_collector.episode_buffer import EpisodeBuffer
 
     _check_maze(maze)
@@ -430,15 +428,7 @@ def collect_pointmaze_dataset(
             f"controller{noise_text}, seed {seed}, split_at_goals={split_at_goals}, "
             "recorded by torchrl_tels.",
         )
-        with warnings.catch_warnings():
-            warnings.filterwarnings(
-                "ignore",
-                message=r"`(code_permalink|author|author_email)` is set to",
-                category=UserWarning,
-            )
-            return minari.create_dataset_from_buffers(
-                dataset_id, episodes, env=env, eval_env=eval_env, **dataset_metadata
-            )
+        return write_minari_dataset(dataset_id, episodes, env, eval_env=eval_env, **dataset_metadata)
     finally:
         env.close()
         eval_env.close()

@@ -1,0 +1,55 @@
+"""One run of the issue-8 reproduction study: the TELS recipe with a named set of overrides.
+
+    python benchmarks/reproduction/run_choice.py --name alpha0.1 --task hopper-medium-v2-10k --seed 0 \
+        --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10 \
+        --override guide.alpha=0.1
+
+writes benchmarks/reproduction/results/<name>/<task>/seed<k>.json (the run's results.json plus
+the exact command), and skips the run if that file exists. The baseline of a comparison is the
+same budget with no --override (name it "paper").
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--name", required=True, help="what this variant tests, e.g. alpha0.1")
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--seed", type=int, required=True)
+    parser.add_argument("--budget", nargs="*", default=[], help="hydra overrides shared by a comparison")
+    parser.add_argument("--override", nargs="*", default=[], help="hydra overrides of this variant")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+
+    out = REPO / "benchmarks" / "reproduction" / "results" / args.name / args.task / f"seed{args.seed}.json"
+    if out.exists():
+        print(f"{out} exists; skipping")
+        return
+    run_dir = REPO / "runs" / "reproduction" / args.name / args.task / f"seed{args.seed}"
+    cmd = [sys.executable, str(REPO / "recipes" / "tels_offline.py"), f"dataset.name={args.task}",
+           f"seed={args.seed}", f"run_dir={run_dir}", "resume=true", f"threads={args.threads}",
+           "logger.wandb_mode=disabled", *args.budget, *args.override]
+    start = time.time()
+    subprocess.run(cmd, check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)})
+    results = json.loads((run_dir / "results.json").read_text())
+    results.update(variant=args.name, overrides=args.override, budget=args.budget, command=" ".join(cmd),
+                   date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, cpu_count=os.cpu_count())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(json.dumps(results, indent=2))
+    os.replace(tmp, out)
+    print(f"{args.name} {args.task} seed {args.seed}: {results['final_normalized_score_mean']:.1f}")
+
+
+if __name__ == "__main__":
+    main()
