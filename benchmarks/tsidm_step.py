@@ -19,6 +19,7 @@ from tensordict import TensorDict
 
 from torchrl_tels.modules import TSIDM
 from torchrl_tels.objectives import TSIDMLoss
+from torchrl_tels.training import sum_losses
 
 
 def jvp_via_vmap_jacrev(function, primal, tangent):
@@ -38,7 +39,7 @@ def make_step(loss_cls, tsidm, batch):
     def step():
         out = loss(batch)
         optim.zero_grad()
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        sum_losses(out).backward()
         optim.step()
 
     return loss, step

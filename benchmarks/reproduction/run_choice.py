@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+from torchrl_tels.training import write_json
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -45,9 +47,7 @@ def main():
     results.update(variant=args.name, overrides=args.override, budget=args.budget, command=" ".join(cmd),
                    date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, cpu_count=os.cpu_count())
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(json.dumps(results, indent=2))
-    os.replace(tmp, out)
+    write_json(out, results)
     print(f"{args.name} {args.task} seed {args.seed}: {results['final_normalized_score_mean']:.1f}")
 
 
