@@ -29,6 +29,8 @@ Hyperparameters (:data:`HYPERPARAMETERS`, each with its source):
   with eps 1e-4. States are normalized with the dataset's mean and std
   (+1e-3), as in the TD3+BC paper (Fujimoto & Gu, 2021, Sec. 5); TorchRL's
   script leaves them raw.
+* Mazes (:data:`MAZE_HYPERPARAMETERS`): IQL and IQL-latent take the IQL
+  paper's AntMaze values, expectile 0.9, temperature 10 and rewards r - 1.
 * BC: TD3+BC's actor without its Q term: the same deterministic 256x256 ReLU
   MLP with a tanh output, the same normalized states, ``BCLoss`` with an L2
   loss, Adam lr 3e-4.
@@ -53,11 +55,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from tensordict.nn.distributions import NormalParamExtractor
 from torch import nn
 import torchrl
-from torchrl.envs import Compose, DoubleToFloat, ObservationNorm, TransformedEnv
+from torchrl.envs import Compose, DoubleToFloat, EnvBase, ObservationNorm, TransformedEnv
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
@@ -66,7 +69,7 @@ from torchrl_tels.data import get_task, load_dataset, make_offline_replay_buffer
 from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
 from torchrl_tels.training import check_finite
 
-__all__ = ["HYPERPARAMETERS", "METHODS", "train_baseline"]
+__all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "train_baseline"]
 
 METHODS = ("iql", "td3bc", "bc", "iql_latent")
 
@@ -83,6 +86,7 @@ _IQL = {
     "default_policy_scale": 1.0,
     "scale_lb": 0.1,
     "normalize_observations": False,
+    "reward_bias": 0.0,
     "source": "torchrl sota-implementations/iql/offline_config.yaml (states not normalized, as there)",
 }
 
@@ -119,6 +123,13 @@ HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "normalize_observations": True,
         "source": "TD3+BC's actor, normalization and optimizer without the Q term; torchrl BCLoss (MSE)",
     },
+}
+
+#: Overrides for maze tasks (AntMaze, PointMaze): the IQL paper's AntMaze values
+#: (Kostrikov et al., 2022, App. B: expectile 0.9, temperature 10, rewards r - 1),
+#: which POR and the TELS paper's maze runs also use.
+MAZE_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
+    method: {"expectile": 0.9, "temperature": 10.0, "reward_bias": -1.0} for method in ("iql", "iql_latent")
 }
 
 _OBS_NORM_EPS = 1e-3  # TD3+BC paper: std + 1e-3
@@ -241,9 +252,10 @@ def machine_info() -> dict:
 
 def train_baseline(
     method: str,
-    dataset: str,
+    dataset: str | TensorDictBase,
     *,
     steps: int,
+    task: str | None = None,
     seed: int = 0,
     batch_size: int = 256,
     eval_interval: int = 5000,
@@ -255,17 +267,20 @@ def train_baseline(
     hyperparameters: Mapping[str, Any] | None = None,
     log_fn: Callable[[Mapping[str, float], int], None] | None = None,
     progress: bool = True,
-) -> dict:
+    return_policy: bool = False,
+) -> dict | tuple[dict, TensorDictModuleBase, EnvBase]:
     """Trains one TorchRL baseline on ``dataset`` for ``steps`` gradient steps and evaluates it.
 
     Args:
         method: ``"iql"``, ``"td3bc"``, ``"bc"`` or ``"iql_latent"``.
         dataset: a dataset name for :func:`~torchrl_tels.data.load_dataset`
             (e.g. ``"hopper-medium-v2-10k"``); its task gives the evaluation env
-            and the D4RL reference returns.
+            and the D4RL reference returns. Or transitions already loaded
+            (e.g. after :func:`~torchrl_tels.data.delete_regions`), with ``task``.
 
     Keyword Args:
         steps: gradient steps (one batch each; for TD3+BC, critic steps).
+        task: the evaluation task's name; defaults to the dataset's.
         seed: seeds torch, the replay buffer's sampler and the evaluation episodes.
         batch_size: transitions per step (256, as the recipe).
         eval_interval, eval_episodes, eval_last_n, eval_max_steps: the
@@ -275,12 +290,14 @@ def train_baseline(
         hyperparameters: overrides of :data:`HYPERPARAMETERS` ``[method]``.
         log_fn: called with ``({"eval/normalized_score": ..., ...}, step)`` after each evaluation.
         progress: print one line per evaluation.
+        return_policy: also return the trained actor and the evaluation env
+            (with the observation transforms the actor expects).
 
     Returns:
         A dict like the recipe's ``results.json``: ``final_normalized_score_mean``/``_std``
         (over the last ``eval_last_n`` evaluations), ``evaluations``, ``wall_time_s``,
         ``steps_per_s`` (``policy_excluding_eval`` leaves evaluation out), the
-        hyperparameters and the budget.
+        hyperparameters and the budget. With ``return_policy``, ``(results, actor, env)``.
     """
     if method not in _BUILDERS:
         raise ValueError(f"unknown baseline {method!r}; expected one of {', '.join(METHODS)}.")
@@ -295,8 +312,16 @@ def train_baseline(
     start_time = time.perf_counter()
     torch.manual_seed(seed)
 
-    data = load_dataset(dataset)
-    task = get_task(Path(str(dataset)).stem)
+    if isinstance(dataset, TensorDictBase):
+        if task is None:
+            raise ValueError("train_baseline: give task= with a dataset passed as a TensorDict.")
+        data, dataset = dataset, f"<{len(dataset)} transitions>"
+    else:
+        data = load_dataset(dataset)
+    task = get_task(task or Path(str(dataset)).stem)
+    if hp.get("reward_bias"):
+        data = data.clone()
+        data["next", "reward"] = data["next", "reward"] + hp["reward_bias"]
     env = make_eval_env(task.env_id)
     action_spec = env.action_spec_unbatched
     obs_dim = data["observation"].shape[-1]
@@ -354,7 +379,7 @@ def train_baseline(
     policy_s = time.perf_counter() - loop_start
 
     last = torch.tensor([e["score"] for e in evaluations[-eval_last_n:]], dtype=torch.float64)
-    return {
+    results = {
         "method": method,
         "dataset": str(dataset),
         "task": task.name,
@@ -377,3 +402,4 @@ def train_baseline(
         "hyperparameters": hp,
         **extra,
     }
+    return (results, actor, env) if return_policy else results

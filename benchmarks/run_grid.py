@@ -41,7 +41,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from baselines import machine_info, METHODS as BASELINES, train_baseline
+from baselines import machine_info, MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
 from torchrl_tels.training import write_json  # temp file + rename: a skip check never sees half a file
 
 REPO = Path(__file__).resolve().parents[1]
@@ -71,7 +71,16 @@ PAPER_TABLE1 = {
                                   "tsrl": (38.4, 3.1), "tels": (40.8, 0.6)},
     "walker2d-medium-v2-10k": {"bc": (15.8, 14.1), "td3bc": (7.4, 13.1), "iql": (22.5, 3.8),
                                "tsrl": (49.7, 10.6), "tels": (62.4, 5.3)},
+    "antmaze-umaze-v0-10k": {"bc": (44.7, 42.1), "td3bc": (0.7, 1.2), "iql": (65.1, 19.4),
+                             "tsrl": (76.1, 15.6), "tels": (88.7, 7.7)},
 }
+#: Task-name prefixes run with the recipe's maze preset (stochastic guide, AntMaze values, r - 1)
+#: and the baselines' maze hyperparameters.
+MAZE_PREFIXES = ("antmaze", "pointmaze")
+
+
+def is_maze(task: str) -> bool:
+    return task.startswith(MAZE_PREFIXES)
 PAPER_POLICY_STEPS = 100_000  # Table 11
 PAPER_TSIDM_EPOCHS = 1000  # Table 10
 EVAL_LAST_N = 10  # Table 1: final 10 evaluations
@@ -104,7 +113,7 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
     return cmd
 
 
-def _recipe(overrides: list[str], threads: int | None) -> None:
+def run_recipe(overrides: list[str], threads: int | None) -> None:
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
@@ -118,6 +127,8 @@ def _recipe(overrides: list[str], threads: int | None) -> None:
 def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str) -> list[str]:
     overrides = [f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true",
                  f"logger.wandb_mode={wandb_mode}", f"logger.exp_name=tels_{task}_seed{seed}"]
+    if is_maze(task):
+        overrides.append("preset=maze")
     if args.threads:
         overrides.append(f"threads={args.threads}")
     if args.tsidm_steps is not None:
@@ -133,7 +144,7 @@ def run_tels(task: str, seed: int, args, wandb_mode: str) -> dict:
         f"optim.steps={args.steps}", f"optim.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
         f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}",
     ]
-    _recipe(overrides, args.threads)
+    run_recipe(overrides, args.threads)
     results = json.loads((run_dir / "results.json").read_text())
     return {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
 
@@ -157,7 +168,7 @@ def resolve_tsidm(task: str, seed: int, args) -> tuple[Path, str]:
     run_dir = args.work_dir / "tsidm" / task / f"seed{seed}_{budget}"
     if not (run_dir / "tsidm.pt").exists():
         # Stage 1 only: the policy stage is cut to one step with a one-step evaluation.
-        _recipe(_recipe_overrides(task, seed, run_dir, args, "disabled") + [
+        run_recipe(_recipe_overrides(task, seed, run_dir, args, "disabled") + [
             "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.max_steps=1", "eval.last_n=1",
         ], args.threads)
     return run_dir / "tsidm.pt", "recipe, stage 1 only"
@@ -200,6 +211,7 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
             method, task, steps=args.steps, seed=seed, batch_size=BATCH_SIZE, eval_interval=args.eval_interval,
             eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, threads=args.threads,
             tsidm_path=tsidm_path, log_fn=logger.log_scalars if logger else None,
+            hyperparameters=MAZE_HYPERPARAMETERS.get(method) if is_maze(task) else None,
         )
         if method == "iql_latent":
             results["tsidm"]["source"] = source

@@ -30,6 +30,7 @@ from torchrl.objectives import SoftUpdate
 from torchrl_tels.config import check_same_run, check_writable_folder, ConfigError, training_config, validate_config
 from torchrl_tels.data import (
     DatasetError,
+    delete_regions,
     get_task,
     load_dataset,
     make_offline_replay_buffer,
@@ -167,6 +168,15 @@ def train(cfg: DictConfig) -> dict:
     if cfg.dataset.size:
         subset = subset_trajectories if cfg.dataset.subset == "trajectories" else subsample_transitions
         data = subset(data, int(cfg.dataset.size), seed=cfg.seed)
+    if cfg.dataset.delete_boxes:
+        if max(cfg.dataset.delete_xy) >= data["observation"].shape[-1]:
+            raise DatasetError(f"dataset.delete_xy={list(cfg.dataset.delete_xy)} names a column beyond the "
+                               f"{data['observation'].shape[-1]} observation columns of {dataset_name!r}.")
+        # Fig. 3's OOD test: the same seed removes the same transitions for every method.
+        before = len(data)
+        data = delete_regions(data, [tuple(box) for box in cfg.dataset.delete_boxes], cfg.dataset.delete_ratio,
+                              seed=cfg.seed, xy_slice=list(cfg.dataset.delete_xy))
+        print(f"dataset.delete_boxes: deleted {before - len(data)} of {before} transitions, {len(data)} left")
     task = get_task(cfg.dataset.task or Path(str(dataset_name)).stem)
     env = make_eval_env(task.env_id)
     env_obs_dim = env.observation_spec["observation"].shape[-1]

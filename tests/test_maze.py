@@ -320,3 +320,80 @@ def test_pointmaze_continuous_noisy(minari_root):
 
     with pytest.raises(ValueError, match="already exists"):
         pointmaze.collect_pointmaze_dataset(dataset_id, "UMaze", n_steps=10)
+
+
+@needs_robotics
+def test_shortest_path_joins_free_neighbouring_cells():
+    env = pointmaze.make_pointmaze_env("Medium")
+    controller = pointmaze.WaypointController(env)
+    start, goal = pointmaze.FIXED_TASK_CELLS["Medium"]
+    path = controller.shortest_path(start, goal)
+    grid = np.array(env.unwrapped.maze.maze_map)
+    env.close()
+    assert path[0] == start and path[-1] == goal
+    assert all(grid[cell] != 1 for cell in path)
+    assert all(abs(a[0] - b[0]) + abs(a[1] - b[1]) == 1 for a, b in zip(path, path[1:]))
+    # Manhattan distance is a lower bound; the Medium maze's walls make the detour 10 moves (hand-counted).
+    assert len(path) - 1 == 10 >= abs(goal[0] - start[0]) + abs(goal[1] - start[1])
+    with pytest.raises(ValueError, match="not a free cell"):
+        controller.shortest_path((0, 0), goal)
+
+
+@needs_robotics
+def test_fixed_task_starts_and_ends_in_its_cells():
+    """pointmaze-medium-fixed: every reset starts in cell (1, 1) with the goal in cell (6, 6)."""
+    from torchrl_tels.envs import make_eval_env
+
+    task = get_task("pointmaze-medium-fixed")
+    env = make_eval_env(task.env_id)
+    start = np.array([-2.5, 2.5])  # cell (1, 1) of the 8x8 map, 1 m cells centred on the origin
+    goal = np.array([2.5, -2.5])  # cell (6, 6)
+    goals = []
+    for seed in range(5):
+        env.set_seed(seed)
+        observation = env.reset()["observation"].numpy()
+        assert np.all(np.abs(observation[0:2] - start) <= 0.5), observation
+        assert np.all(np.abs(observation[2:4] - goal) <= 0.5), observation
+        goals.append(observation[2:4])
+    assert np.ptp(np.stack(goals), axis=0).max() > 0  # the usual in-cell jitter still applies
+    env.close()
+
+
+@needs_robotics
+@needs_antmaze_file
+def test_maze_preset_runs_in_quick_form(tmp_path, capsys):
+    """``preset=[maze,quick]``: Eq. 10 guide with the AntMaze values, POR's box deleted, success-rate score."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    import yaml
+    from hydra import compose, initialize_config_dir
+
+    repo = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("tels_offline_maze", repo / "recipes" / "tels_offline.py")
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    with initialize_config_dir(str(repo / "recipes" / "config"), version_base="1.3"):
+        cfg = compose("config", overrides=[
+            "preset=[maze,quick]", "dataset.name=antmaze-umaze-v0-10k", f"run_dir={tmp_path}",
+            "dataset.delete_boxes=[[5,10,2,7]]", "tsidm.steps=100", "optim.steps=200", "eval.interval=100",
+            "eval.max_steps=100",
+        ])
+    threads = torch.get_num_threads()
+    try:
+        recipe.main.__wrapped__(cfg)
+    finally:
+        torch.set_num_threads(threads)
+    assert "deleted 300 of 5383 transitions" in capsys.readouterr().out  # POR's box, as counted above
+
+    resolved = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert resolved["guide"]["mode"] == "stochastic" and resolved["guide"]["alpha"] == 10.0
+    assert resolved["value"]["expectile"] == 0.9 and resolved["dataset"]["reward_bias"] == -1.0
+    assert resolved["guide"]["num_cells"] == [256, 256]  # quick's small nets on top of maze's values
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert len(results["evaluations"]) == 2
+    for evaluation in results["evaluations"]:
+        # D4RL antmaze normalization: each episode scores 0 or 100 (success rate x 100).
+        assert set(evaluation["scores"]) <= {0.0, 100.0}
+    assert 0.0 <= results["final_normalized_score_mean"] <= 100.0

@@ -250,6 +250,10 @@ HYPERPARAMETER_CASES = [
     ("value.lr=inf", "value.lr must be finite, got inf."),
     ("tsidm.beta_candidates=[0.1,-1]", "tsidm.beta_candidates must be finite numbers >= 0, got -1."),
     ("value.num_cells=[256,0]", "value.num_cells must be a list of positive integers"),
+    ("dataset.delete_boxes=[[1,0,0,1]]", "dataset.delete_boxes: each box must be [xmin, xmax, ymin, ymax]"),
+    ("dataset.delete_boxes=[[0,1,0]]", "dataset.delete_boxes: each box must be [xmin, xmax, ymin, ymax]"),
+    ("dataset.delete_ratio=1.5", "dataset.delete_ratio must lie in [0, 1], got 1.5."),
+    ("dataset.delete_xy=[0]", "dataset.delete_xy must be two observation column indices >= 0"),
 ]
 
 

@@ -164,3 +164,23 @@ def test_register_task_leaves_no_trace():
 def test_task_rejects_bad_reference_scores():
     with pytest.raises(ValueError, match="must be greater than ref_min_score"):
         Task("bad-v0", "Pendulum-v1", 10.0, 10.0, 3, 1)
+
+
+def test_rollout_episodes_are_the_evaluated_episodes():
+    """evaluate_policy's returns are the reward sums of rollout_episodes' episodes, seeded per episode."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import DoubleToFloat, TransformedEnv
+
+    from torchrl_tels.envs import evaluate_policy, make_eval_env, rollout_episodes
+
+    # Pendulum draws its start from the reset seed; a fixed feedback law keeps the policy deterministic.
+    env = TransformedEnv(make_eval_env("Pendulum-v1"), DoubleToFloat())
+    policy = TensorDictModule(lambda obs: (-obs[..., 1:2]).clamp(-2, 2), in_keys=["observation"], out_keys=["action"])
+    rollouts = list(rollout_episodes(policy, env, 3, seed=7, max_steps=50))
+    returns, lengths = evaluate_policy(policy, env, 3, seed=7, max_steps=50, with_lengths=True)
+    assert returns == [r["next", "reward"].sum().item() for r in rollouts]
+    assert lengths == [r.shape[-1] for r in rollouts]
+    # Episode i is reset with seed + i: the second episode of seed 7 is the first of seed 8.
+    again = next(rollout_episodes(policy, env, 1, seed=8, max_steps=50))
+    torch.testing.assert_close(again["observation"], rollouts[1]["observation"])
+    assert not torch.equal(rollouts[0]["observation"][0], rollouts[1]["observation"][0])

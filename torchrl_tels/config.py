@@ -40,6 +40,24 @@ def _number(cfg, path: str) -> float:
     return number
 
 
+def _check_deletion(cfg) -> None:
+    boxes = cfg.dataset.delete_boxes
+    if isinstance(boxes, (str, bytes)) or not hasattr(boxes, "__len__"):
+        raise ConfigError(f"dataset.delete_boxes must be a list of [xmin, xmax, ymin, ymax] boxes, got {boxes!r}.")
+    for box in boxes:
+        ok = (not isinstance(box, (str, bytes)) and hasattr(box, "__len__") and len(box) == 4
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box))
+        if not ok or box[0] > box[1] or box[2] > box[3]:
+            raise ConfigError(f"dataset.delete_boxes: each box must be [xmin, xmax, ymin, ymax] with finite "
+                              f"numbers, xmin <= xmax and ymin <= ymax; got {box!r}.")
+    if not 0.0 <= _number(cfg, "dataset.delete_ratio") <= 1.0:
+        raise ConfigError(f"dataset.delete_ratio must lie in [0, 1], got {cfg.dataset.delete_ratio}.")
+    xy = cfg.dataset.delete_xy
+    if (isinstance(xy, (str, bytes)) or not hasattr(xy, "__len__") or len(xy) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in xy)):
+        raise ConfigError(f"dataset.delete_xy must be two observation column indices >= 0, got {xy!r}.")
+
+
 def validate_config(cfg) -> None:
     """Raises :class:`ConfigError` naming the first bad entry of a recipe config."""
     beta = cfg.tsidm.beta
@@ -65,6 +83,7 @@ def validate_config(cfg) -> None:
             raise ConfigError(f"{path} must be >= 0, got {_number(cfg, path)}.")
     for path in ("dataset.reward_scale", "dataset.reward_bias"):
         _number(cfg, path)
+    _check_deletion(cfg)
     if beta == "auto" and len(cfg.tsidm.beta_candidates) == 0:
         raise ConfigError("tsidm.beta=auto needs at least one value in tsidm.beta_candidates.")
     if not 0.0 <= _number(cfg, "tsidm.inverse_dropout") < 1.0:

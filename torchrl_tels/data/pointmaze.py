@@ -60,6 +60,8 @@ from torchrl_tels.data.tasks import Task, register_task
 
 __all__ = [
     "EVAL_ENV_IDS",
+    "FIXED_EVAL_ENV_IDS",
+    "FIXED_TASK_CELLS",
     "MAZE_ENV_IDS",
     "MAZE_MAX_EPISODE_STEPS",
     "POINTMAZE_OBSERVATION_KEYS",
@@ -82,6 +84,18 @@ MAZE_MAX_EPISODE_STEPS: dict[str, int] = {"UMaze": 300, "Medium": 600, "Large": 
 #: Episodic evaluation environments with flat 8-dim observations.
 EVAL_ENV_IDS: dict[str, str] = {
     maze: f"torchrl_tels/PointMaze{maze}Flat-v0" for maze in MAZE_ENV_IDS
+}
+#: Start and goal cells (row, col) of the fixed-task evaluation envs: opposite
+#: corners joined by the longest corridor, like D4RL antmaze's start and goal.
+FIXED_TASK_CELLS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
+    "UMaze": ((3, 1), (1, 1)),
+    "Medium": ((1, 1), (6, 6)),
+    "Large": ((1, 1), (7, 10)),
+}
+#: Episodic evaluation environments with a fixed start and goal cell
+#: (:data:`FIXED_TASK_CELLS`), flat 8-dim observations.
+FIXED_EVAL_ENV_IDS: dict[str, str] = {
+    maze: f"torchrl_tels/PointMaze{maze}FixedFlat-v0" for maze in MAZE_ENV_IDS
 }
 #: Dict entries in the order ``load_dataset`` concatenates them by default.
 POINTMAZE_OBSERVATION_KEYS: tuple[str, ...] = ("achieved_goal", "desired_goal", "observation")
@@ -157,6 +171,28 @@ class WaypointController:
                     queue.append((ni, nj))
         self._distances[goal_cell] = distance
         return distance
+
+    def shortest_path(self, start_cell: tuple[int, int], goal_cell: tuple[int, int]) -> list[tuple[int, int]]:
+        """Cells (row, col) of a shortest path from ``start_cell`` to ``goal_cell``, both included.
+
+        Raises:
+            ValueError: a cell is a wall, or the goal cannot be reached.
+        """
+        start_cell, goal_cell = tuple(map(int, start_cell)), tuple(map(int, goal_cell))
+        for cell in (start_cell, goal_cell):
+            if not self._is_free(cell):
+                raise ValueError(f"cell {cell} is not a free cell of the maze.")
+        distance = self._distance_to(goal_cell)
+        if distance[start_cell] < 0:
+            raise ValueError(f"goal cell {goal_cell} cannot be reached from {start_cell}.")
+        path = [start_cell]
+        while path[-1] != goal_cell:
+            i, j = path[-1]
+            path.append(next(
+                (i + di, j + dj) for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1))
+                if self._is_free((i + di, j + dj)) and distance[i + di, j + dj] == distance[i, j] - 1
+            ))
+        return path
 
     def _cell(self, xy: np.ndarray) -> tuple[int, int]:
         i, j = self.maze.cell_xy_to_rowcol(xy)
@@ -241,46 +277,73 @@ def _make_flat_eval_env(maze: str, **kwargs: Any) -> gym.Env:
     return gym.wrappers.FlattenObservation(env)
 
 
+def _make_fixed_eval_env(maze: str, **kwargs: Any) -> gym.Env:
+    # Gymnasium-Robotics draws the reset position in the "r" cell and the goal
+    # in the "g" cell (each with its usual +-0.25 cell jitter).
+    from gymnasium_robotics.envs.maze.maps import GOAL, RESET
+
+    _import_robotics()
+    start, goal = FIXED_TASK_CELLS[_check_maze(maze)]
+    maze_map = [list(row) for row in _maze_map(maze)]
+    maze_map[start[0]][start[1]] = RESET
+    maze_map[goal[0]][goal[1]] = GOAL
+    return _make_flat_eval_env(maze, maze_map=maze_map, **kwargs)
+
+
+def _maze_map(maze: str) -> list[list[Any]]:
+    from gymnasium_robotics.envs.maze import maps
+
+    return {"UMaze": maps.U_MAZE, "Medium": maps.MEDIUM_MAZE, "Large": maps.LARGE_MAZE}[_check_maze(maze)]
+
+
 def register_pointmaze_envs() -> None:
-    """Register :data:`EVAL_ENV_IDS` with Gymnasium (no-op if done).
+    """Register :data:`EVAL_ENV_IDS` and :data:`FIXED_EVAL_ENV_IDS` with Gymnasium (no-op if done).
 
     Each is the episodic task (``continuing_task=False``: the episode ends,
     with reward 1, when the point is within 0.45 of the goal) with a flat
-    observation, truncated at :data:`MAZE_MAX_EPISODE_STEPS`.
+    observation, truncated at :data:`MAZE_MAX_EPISODE_STEPS`. The first set
+    draws start and goal cells at random; the second always starts in the
+    same cell and has the same goal cell (:data:`FIXED_TASK_CELLS`).
     """
-    for maze, env_id in EVAL_ENV_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(
-                id=env_id,
-                entry_point=f"{__name__}:_make_flat_eval_env",
-                kwargs={"maze": maze},
-                max_episode_steps=MAZE_MAX_EPISODE_STEPS[maze],
-            )
+    for ids, entry_point in ((EVAL_ENV_IDS, "_make_flat_eval_env"), (FIXED_EVAL_ENV_IDS, "_make_fixed_eval_env")):
+        for maze, env_id in ids.items():
+            if env_id not in gym.registry:
+                gym.register(
+                    id=env_id,
+                    entry_point=f"{__name__}:{entry_point}",
+                    kwargs={"maze": maze},
+                    max_episode_steps=MAZE_MAX_EPISODE_STEPS[maze],
+                )
 
 
-def pointmaze_task_name(maze: str) -> str:
-    """Task name of a maze: ``"pointmaze-umaze"``, ``"pointmaze-medium"``, ..."""
-    return f"pointmaze-{_check_maze(maze).lower()}"
+def pointmaze_task_name(maze: str, fixed: bool = False) -> str:
+    """Task name of a maze: ``"pointmaze-umaze"``, ``"pointmaze-medium"``, ...; ``"pointmaze-medium-fixed"``."""
+    return f"pointmaze-{_check_maze(maze).lower()}" + ("-fixed" if fixed else "")
 
 
-def register_pointmaze_tasks(*dataset_names: str, maze: str | None = None) -> list[Task]:
+def register_pointmaze_tasks(
+    *dataset_names: str, maze: str | None = None, fixed: bool = False
+) -> list[Task]:
     """Register evaluation tasks on :data:`EVAL_ENV_IDS` (replacing old ones).
 
     Without arguments, registers ``pointmaze-<maze>`` for the three mazes
-    (done on import). With dataset names (e.g. a Minari id written by
-    :func:`collect_pointmaze_dataset`) and ``maze``, registers those names
-    for that maze, so ``get_task(<dataset id>)`` finds the task.
+    (done on import, as is ``fixed=True``). With dataset names (e.g. a Minari
+    id written by :func:`collect_pointmaze_dataset`) and ``maze``, registers
+    those names for that maze, so ``get_task(<dataset id>)`` finds the task.
+    ``fixed=True`` evaluates on :data:`FIXED_EVAL_ENV_IDS` instead (one start
+    and one goal cell) and names the default tasks ``pointmaze-<maze>-fixed``.
     """
     if dataset_names and maze is None:
         raise ValueError("register_pointmaze_tasks: give maze= with dataset names.")
     mazes = [_check_maze(maze)] if maze is not None else list(MAZE_ENV_IDS)
+    env_ids = FIXED_EVAL_ENV_IDS if fixed else EVAL_ENV_IDS
     tasks = []
     for name_maze in mazes:
-        names = dataset_names or (pointmaze_task_name(name_maze),)
+        names = dataset_names or (pointmaze_task_name(name_maze, fixed),)
         for name in names:
             task = Task(
                 name,
-                EVAL_ENV_IDS[name_maze],
+                env_ids[name_maze],
                 0.0,
                 1.0,
                 observation_dim=8,
@@ -436,3 +499,4 @@ def collect_pointmaze_dataset(
 
 register_pointmaze_envs()
 register_pointmaze_tasks()
+register_pointmaze_tasks(fixed=True)

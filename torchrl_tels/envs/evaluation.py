@@ -1,12 +1,15 @@
 """Deterministic policy evaluation in a gymnasium env through TorchRL (paper §4 protocol)."""
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, GymEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["make_eval_env", "evaluate_policy"]
+__all__ = ["make_eval_env", "evaluate_policy", "rollout_episodes"]
 
 
 def make_eval_env(env_id: str, **kwargs) -> GymEnv:
@@ -18,6 +21,26 @@ def make_eval_env(env_id: str, **kwargs) -> GymEnv:
 
 
 @torch.no_grad()
+def rollout_episodes(
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    episodes: int,
+    *,
+    seed: int,
+    max_steps: int = 1000,
+) -> Iterator[TensorDictBase]:
+    """Yields the rollout TensorDict of each of ``episodes`` deterministic episodes.
+
+    Episode ``i`` resets the env with seed ``seed + i``, so a given
+    evaluation is reproducible whatever ran before it (a resumed run scores
+    the same as an uninterrupted one). Each rollout stops at the first done.
+    """
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for episode in range(episodes):
+            env.set_seed(seed + episode)
+            yield env.rollout(max_steps, policy, break_when_any_done=True)
+
+
 def evaluate_policy(
     policy: TensorDictModuleBase,
     env: EnvBase,
@@ -29,15 +52,10 @@ def evaluate_policy(
 ) -> list[float] | tuple[list[float], list[int]]:
     """Undiscounted returns of ``episodes`` deterministic episodes (and their lengths if ``with_lengths``).
 
-    Episode ``i`` resets the env with seed ``seed + i``, so a given
-    evaluation is reproducible whatever ran before it (a resumed run scores
-    the same as an uninterrupted one).
+    The episodes are those of :func:`rollout_episodes` with the same arguments.
     """
     returns, lengths = [], []
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        for episode in range(episodes):
-            env.set_seed(seed + episode)
-            rollout = env.rollout(max_steps, policy, break_when_any_done=True)
-            returns.append(rollout["next", "reward"].sum().item())
-            lengths.append(rollout.shape[-1])
+    for rollout in rollout_episodes(policy, env, episodes, seed=seed, max_steps=max_steps):
+        returns.append(rollout["next", "reward"].sum().item())
+        lengths.append(rollout.shape[-1])
     return (returns, lengths) if with_lengths else returns
