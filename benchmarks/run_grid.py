@@ -49,7 +49,10 @@ RECIPE = REPO / "recipes" / "tels_offline.py"
 DEFAULT_RESULTS = REPO / "benchmarks" / "results"
 DEFAULT_WORK = REPO / "runs" / "benchmarks"
 
-METHODS = ("tels", *BASELINES)  # tels first: iql_latent reuses its TS-IDM
+#: TELS with a reduced TS-IDM (paper Table 3): ``tels_<variant>`` trains with ``tsidm.ablation=<variant>``.
+ABLATIONS = {"tels_ae": "ae", "tels_dyn": "dyn", "tels_ode": "ode"}
+GRID_METHODS = ("tels", *BASELINES)  # tels first: iql_latent reuses its TS-IDM; ablations only on request
+METHODS = (*GRID_METHODS, *ABLATIONS)
 TASKS = (
     "hopper-medium-v2-10k",
     "hopper-medium-replay-v2-10k",
@@ -58,6 +61,7 @@ TASKS = (
 )
 SEEDS = (0, 1, 2)
 LABELS = {"bc": "BC", "td3bc": "TD3+BC", "iql": "IQL", "iql_latent": "IQL (TS-IDM latent)", "tels": "TELS",
+          "tels_ae": "φ/ψ + h_inv", "tels_dyn": "↑ + h_fwd, h_rvs", "tels_ode": "↑ + ℓ_ode",
           "tsrl": "TSRL"}
 TABLE_COLUMNS = ("bc", "td3bc", "iql", "iql_latent", "tels")
 
@@ -95,8 +99,8 @@ def result_path(results_dir: Path, method: str, task: str, seed: int) -> Path:
     return results_dir / method / task / f"seed{seed}.json"
 
 
-def tels_run_dir(work_dir: Path, task: str, seed: int) -> Path:
-    return work_dir / "tels" / task / f"seed{seed}"
+def tels_run_dir(work_dir: Path, task: str, seed: int, method: str = "tels") -> Path:
+    return work_dir / method / task / f"seed{seed}"
 
 
 # --------------------------------------------------------------- running
@@ -136,14 +140,16 @@ def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str
     return overrides
 
 
-def run_tels(task: str, seed: int, args, wandb_mode: str) -> dict:
-    run_dir = tels_run_dir(args.work_dir, task, seed)
+def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") -> dict:
+    run_dir = tels_run_dir(args.work_dir, task, seed, method)
     if args.force and run_dir.exists():
         shutil.rmtree(run_dir)
     overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode) + [
         f"optim.steps={args.steps}", f"optim.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
         f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}",
     ]
+    if method in ABLATIONS:
+        overrides += [f"tsidm.ablation={ABLATIONS[method]}", f"logger.exp_name={method}_{task}_seed{seed}"]
     run_recipe(overrides, args.threads)
     results = json.loads((run_dir / "results.json").read_text())
     return {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
@@ -178,7 +184,7 @@ def budget_of(args, method: str) -> dict:
     budget = {"policy_steps": args.steps, "batch_size": BATCH_SIZE, "eval_interval": args.eval_interval,
               "eval_episodes": args.eval_episodes, "eval_last_n": EVAL_LAST_N,
               "paper_policy_steps": PAPER_POLICY_STEPS}
-    if method in ("tels", "iql_latent"):
+    if method in ("tels", "iql_latent", *ABLATIONS):
         budget["tsidm_steps"] = args.tsidm_steps  # None: the recipe's default, Table 10's 1000 epochs
         budget["paper_tsidm_epochs"] = PAPER_TSIDM_EPOCHS
     return budget
@@ -193,8 +199,8 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
     started = datetime.now(timezone.utc)
     start = time.perf_counter()
     print(f"== {method} {task} seed {seed}: {args.steps} policy steps", flush=True)
-    if method == "tels":
-        results = run_tels(task, seed, args, wandb_mode)
+    if method == "tels" or method in ABLATIONS:
+        results = run_tels(task, seed, args, wandb_mode, method)
         threads = args.threads or torch.get_num_threads()  # the recipe starts with the same default
     else:
         tsidm_path = source = None
@@ -240,7 +246,7 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
 
 
 def combos(args):
-    methods = [m for m in METHODS if m in (args.method or METHODS)]
+    methods = [m for m in METHODS if m in (args.method or GRID_METHODS)]
     for seed in args.seed or SEEDS:
         for task in args.task or TASKS:
             for method in methods:
@@ -275,7 +281,7 @@ def _budget_cell(by_method: dict) -> str:
     policy = sorted({r["budget"]["policy_steps"] for r in every_run})
     protocol = sorted({(r["budget"]["eval_interval"], r["budget"]["eval_episodes"]) for r in every_run})
     tsidm = sorted({str(r["budget"].get("tsidm_steps")) for m, runs in by_method.items()
-                    if m in ("tels", "iql_latent") for r in runs})
+                    if m in ("tels", "iql_latent", *ABLATIONS) for r in runs})
     if len(policy) > 1:
         text = "**budgets differ: " + ", ".join(_steps_label(s) for s in policy) + " steps**"
     else:
@@ -326,6 +332,28 @@ def render_table(results_dir: Path) -> Path:
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
+
+    ablation_tasks = [t for t in tasks if any(m in found[t] for m in ABLATIONS)]
+    if ablation_tasks:
+        variants = (*ABLATIONS, "tels")
+        lines += ["", "## TS-IDM ablations (paper Table 3)", "",
+                  "TELS with TS-IDM variants: the inverse-dynamics autoencoder alone (`tsidm.ablation=ae`), "
+                  "plus latent forward/reverse dynamics (`dyn`), plus ℓ_ode (`ode`), and the full TS-IDM "
+                  "(plus ℓ_Tsym). The paper's Table 3 uses the medium-expert sets, which are not among the "
+                  "shared data; its hopper-medium-expert row reads 17.2, 35.5, 61.4, 100.9.", "",
+                  "| task | budget | " + " | ".join(LABELS[m] for m in variants[:-1]) + " | full TS-IDM |",
+                  "|---|---|" + "---|" * len(variants)]
+        for task in ablation_tasks:
+            cells = []
+            for method in variants:
+                scores = [r["final_normalized_score_mean"] for r in found[task].get(method, [])]
+                if scores:
+                    mean, std = _mean_std(scores)
+                    cells.append(f"**{mean:.1f}** ± {std:.1f} (n={len(scores)})")
+                else:
+                    cells.append("—")
+            ablation_budget = _budget_cell({m: r for m, r in found[task].items() if m in variants})
+            lines.append(f"| {task} | {ablation_budget} | " + " | ".join(cells) + " |")
 
     lines += ["", "## Speed", "",
               "Training steps per second, evaluation excluded (median over runs; TELS: the policy stage, "
