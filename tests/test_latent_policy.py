@@ -237,6 +237,27 @@ def test_actor_keeps_dropout_off_in_train_mode():
     torch.testing.assert_close(actor(td.clone())["action"], actor(td.clone())["action"])
 
 
+def test_actor_options_for_the_open_choices():
+    """reencode_proposal feeds phi_s(psi_s(z')) to h_inv; inverse_dropout turns h_inv's dropout on."""
+    tsidm = TSIDM(OBS, ACT, inverse_cells=(64, 64), inverse_dropout=0.5).eval()
+    guide = make_guide_policy(tsidm.latent_state_dim, "deterministic", CELLS)
+    td = TensorDict({"observation": torch.randn(B, OBS)}, [B])
+    with torch.no_grad():
+        z = tsidm.encode_state(td["observation"])
+        proposal = tsidm.state_encoder(tsidm.decode_state(guide.module(z)))
+        expected = tsidm.decode_action(tsidm.infer_latent_action(z, proposal))
+        reencoded = make_tels_actor(tsidm, guide, reencode_proposal=True)(td.clone())["action"]
+        plain = make_tels_actor(tsidm, guide)(td.clone())["action"]
+    torch.testing.assert_close(reencoded, expected)
+    assert not torch.allclose(reencoded, plain)
+
+    noisy = make_tels_actor(tsidm, guide, inverse_dropout=True)
+    with torch.no_grad():
+        first, second = noisy(td.clone())["action"], noisy(td.clone())["action"]
+    assert not torch.allclose(first, second)
+    assert not tsidm.inverse_dynamics.training  # left as it was found
+
+
 def test_actor_rolls_out_in_hopper():
     from torchrl.envs import GymEnv
 

@@ -120,16 +120,37 @@ class LatentActionHead(_FrozenTSIDMPart):
     r"""Eq. (11): :math:`a^* = \psi_a(h_{inv}(z_s, z_{s'}^*))`, clipped to the action bounds.
 
     No training is needed: both networks come from the trained TS-IDM.
+
+    Two readings the paper leaves open (issue 8, choices 6 and 7), off by default:
+    ``reencode_proposal`` feeds :math:`\phi_s(\psi_s(z_{s'}^*))` to
+    :math:`h_{inv}` instead of the guide's output itself, and
+    ``inverse_dropout`` keeps :math:`h_{inv}`'s training dropout on when acting.
     """
 
-    def __init__(self, tsidm: TSIDM, low: torch.Tensor | float | None = None, high: torch.Tensor | float | None = None):
+    def __init__(
+        self,
+        tsidm: TSIDM,
+        low: torch.Tensor | float | None = None,
+        high: torch.Tensor | float | None = None,
+        *,
+        reencode_proposal: bool = False,
+        inverse_dropout: bool = False,
+    ):
         super().__init__(tsidm)
         self.register_buffer("low", None if low is None else torch.as_tensor(low, dtype=torch.float32))
         self.register_buffer("high", None if high is None else torch.as_tensor(high, dtype=torch.float32))
+        self.reencode_proposal = bool(reencode_proposal)
+        self.inverse_dropout = bool(inverse_dropout)
 
     def forward(self, latent_state: torch.Tensor, next_latent_state: torch.Tensor) -> torch.Tensor:
-        # Eq. (11)
-        action = self.tsidm.decode_action(self.tsidm.infer_latent_action(latent_state, next_latent_state))
+        if self.reencode_proposal:
+            next_latent_state = self.tsidm.state_encoder(self.tsidm.decode_state(next_latent_state))
+        self.tsidm.inverse_dynamics.train(self.inverse_dropout)
+        try:
+            # Eq. (11)
+            action = self.tsidm.decode_action(self.tsidm.infer_latent_action(latent_state, next_latent_state))
+        finally:
+            self.tsidm.inverse_dynamics.eval()
         if self.low is not None or self.high is not None:
             action = action.clamp(self.low, self.high)
         return action
@@ -145,6 +166,8 @@ def make_tels_actor(
     latent_key=LATENT_KEY,
     guide_key=GUIDE_KEY,
     action_key="action",
+    reencode_proposal: bool = False,
+    inverse_dropout: bool = False,
 ) -> TensorDictSequential:
     r"""The TELS policy: observation → :math:`z_s` → :math:`\pi_g` → :math:`z_{s'}^*` → Eq. (11) → action.
 
@@ -155,12 +178,15 @@ def make_tels_actor(
         from_latent: if ``True`` the chain starts from ``latent_key``, for use
             behind a :class:`~torchrl_tels.envs.TSIDMEncoderTransform`;
             otherwise it starts from the raw observation and encodes it itself.
+        reencode_proposal, inverse_dropout: see :class:`LatentActionHead` (off: Eq. 11 as written).
     """
     low = high = None
     if action_spec is not None:
         low, high = getattr(action_spec, "low", None), getattr(action_spec, "high", None)
     head = TensorDictModule(
-        LatentActionHead(tsidm, low, high), in_keys=[latent_key, guide_key], out_keys=[action_key]
+        LatentActionHead(tsidm, low, high, reencode_proposal=reencode_proposal, inverse_dropout=inverse_dropout),
+        in_keys=[latent_key, guide_key],
+        out_keys=[action_key],
     )
     modules = [guide_policy, head]
     if not from_latent:
@@ -203,8 +229,12 @@ def load_tels_actor(
     action_spec=None,
     *,
     from_latent: bool = False,
+    **actor_kwargs,
 ) -> TensorDictSequential:
-    """Rebuilds the Eq. (11) actor from a run's ``policy.pt`` and its TS-IDM (a module or ``tsidm.pt``)."""
+    """Rebuilds the Eq. (11) actor from a run's ``policy.pt`` and its TS-IDM (a module or ``tsidm.pt``).
+
+    ``actor_kwargs`` go to :func:`make_tels_actor` (``reencode_proposal``, ``inverse_dropout``).
+    """
     from torchrl_tels.checkpoint import CheckpointError, load_checkpoint
 
     if not isinstance(tsidm, TSIDM):
@@ -217,4 +247,4 @@ def load_tels_actor(
         )
     guide = make_guide_policy(payload["latent_dim"], payload["mode"], payload["num_cells"])
     guide.load_state_dict(payload["state_dict"])
-    return make_tels_actor(tsidm, guide, action_spec, from_latent=from_latent)
+    return make_tels_actor(tsidm, guide, action_spec, from_latent=from_latent, **actor_kwargs)
