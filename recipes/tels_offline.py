@@ -254,7 +254,8 @@ def train(cfg: DictConfig) -> dict:
     target_updater = SoftUpdate(value_loss, tau=cfg.value.target_update_rate)
     value_optim = torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=cfg.value.lr, fused=True)
     guide_optim = torch.optim.Adam(guide_loss.parameters(), lr=cfg.guide.lr, fused=True)
-    actor = make_tels_actor(tsidm, guide, env.action_spec)
+    actor_options = {"reencode_proposal": cfg.guide.reencode_proposal, "inverse_dropout": cfg.guide.act_with_dropout}
+    actor = make_tels_actor(tsidm, guide, env.action_spec, **actor_options)
 
     def update(batch, step):
         # Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V.
@@ -341,7 +342,8 @@ def train(cfg: DictConfig) -> dict:
         },
     }
     save_guide_policy(run_dir / "policy.pt", guide, latent_dim=latent_dim, mode=cfg.guide.mode,
-                      num_cells=cfg.guide.num_cells, metadata={"results": str(run_dir / "results.json")})
+                      num_cells=cfg.guide.num_cells, actor_options=actor_options,
+                      metadata={"results": str(run_dir / "results.json")})
     write_json(run_dir / "results.json", results)
     save_training_state(run_dir / "state.pt", {"stage": "done", "step": cfg.optim.steps, "wall": wall,
                                                "config": run_config})

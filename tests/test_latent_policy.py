@@ -314,3 +314,21 @@ def test_saved_policy_rebuilds_the_same_actor(tmp_path):
     td = TensorDict({"observation": torch.randn(B, OBS)}, [B])
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         torch.testing.assert_close(loaded(td.clone())["action"], actor(td.clone())["action"])
+
+
+def test_saved_policy_keeps_its_actor_options(tmp_path):
+    from torchrl_tels.modules import load_tels_actor, save_guide_policy
+
+    tsidm = small_tsidm()
+    guide = make_guide_policy(tsidm.latent_state_dim, "deterministic", CELLS)
+    tsidm.save(tmp_path / "tsidm.pt")
+    save_guide_policy(tmp_path / "policy.pt", guide, latent_dim=tsidm.latent_state_dim, mode="deterministic",
+                      num_cells=CELLS, actor_options={"reencode_proposal": True})
+    td = TensorDict({"observation": torch.randn(B, OBS)}, [B])
+    with torch.no_grad():
+        reencoded = make_tels_actor(tsidm, guide, reencode_proposal=True)(td.clone())["action"]
+        plain = make_tels_actor(tsidm, guide)(td.clone())["action"]
+        torch.testing.assert_close(load_tels_actor(tmp_path / "policy.pt", tsidm)(td.clone())["action"], reencoded)
+        # An explicit argument wins over the saved option.
+        overridden = load_tels_actor(tmp_path / "policy.pt", tsidm, reencode_proposal=False)(td.clone())["action"]
+    torch.testing.assert_close(overridden, plain)

@@ -84,6 +84,9 @@ def validate_config(cfg) -> None:
     for path in ("dataset.reward_scale", "dataset.reward_bias"):
         _number(cfg, path)
     _check_deletion(cfg)
+    for path in ("guide.tsym_regularizer", "guide.reencode_proposal", "guide.act_with_dropout"):
+        if not isinstance(OmegaConf.select(cfg, path), bool):
+            raise ConfigError(f"{path} must be true or false, got {OmegaConf.select(cfg, path)!r}.")
     if beta == "auto" and len(cfg.tsidm.beta_candidates) == 0:
         raise ConfigError("tsidm.beta=auto needs at least one value in tsidm.beta_candidates.")
     if not 0.0 <= _number(cfg, "tsidm.inverse_dropout") < 1.0:

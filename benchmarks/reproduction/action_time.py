@@ -32,9 +32,9 @@ from torchrl_tels.training import write_json
 
 REPO = Path(__file__).resolve().parents[2]
 VARIANTS = {
-    "eq11": {},  # Eq. (11) as written: the default actor
-    "reencode": {"reencode_proposal": True},  # choice 7
-    "dropout": {"inverse_dropout": True},  # choice 6
+    "eq11": {"reencode_proposal": False, "inverse_dropout": False},  # Eq. (11) as written: the default actor
+    "reencode": {"reencode_proposal": True, "inverse_dropout": False},  # choice 7
+    "dropout": {"reencode_proposal": False, "inverse_dropout": True},  # choice 6
 }
 
 

@@ -205,9 +205,14 @@ def save_guide_policy(
     latent_dim: int,
     mode: str,
     num_cells: Sequence[int],
+    actor_options: dict | None = None,
     metadata: dict | None = None,
 ) -> None:
-    """Writes the trained guide π_g (and how to rebuild it) atomically; pair it with the run's ``tsidm.pt``."""
+    """Writes the trained guide π_g (and how to rebuild it) atomically; pair it with the run's ``tsidm.pt``.
+
+    ``actor_options`` (:func:`make_tels_actor`'s ``reencode_proposal`` and
+    ``inverse_dropout``) are stored so :func:`load_tels_actor` acts the same way.
+    """
     from torchrl_tels.checkpoint import atomic_save
 
     atomic_save(
@@ -216,6 +221,7 @@ def save_guide_policy(
             "latent_dim": int(latent_dim),
             "mode": mode,
             "num_cells": [int(c) for c in num_cells],
+            "actor_options": {k: bool(v) for k, v in (actor_options or {}).items()},
             "state_dict": {k: v.detach().cpu() for k, v in guide_policy.state_dict().items()},
             "metadata": dict(metadata or {}),
         },
@@ -233,7 +239,8 @@ def load_tels_actor(
 ) -> TensorDictSequential:
     """Rebuilds the Eq. (11) actor from a run's ``policy.pt`` and its TS-IDM (a module or ``tsidm.pt``).
 
-    ``actor_kwargs`` go to :func:`make_tels_actor` (``reencode_proposal``, ``inverse_dropout``).
+    ``actor_kwargs`` go to :func:`make_tels_actor` (``reencode_proposal``, ``inverse_dropout``);
+    they override the options the policy was saved with.
     """
     from torchrl_tels.checkpoint import CheckpointError, load_checkpoint
 
@@ -247,4 +254,5 @@ def load_tels_actor(
         )
     guide = make_guide_policy(payload["latent_dim"], payload["mode"], payload["num_cells"])
     guide.load_state_dict(payload["state_dict"])
-    return make_tels_actor(tsidm, guide, action_spec, from_latent=from_latent, **actor_kwargs)
+    options = {**payload.get("actor_options", {}), **actor_kwargs}
+    return make_tels_actor(tsidm, guide, action_spec, from_latent=from_latent, **options)
