@@ -188,7 +188,7 @@ def test_embedded_dataset_equals_shared_file():
 
 @requires_shared
 def test_shared_datasets_dir_default():
-    assert shared_datasets_dir() == SHARED_D4RL.parent.resolve()
+    assert shared_datasets_dir().resolve() == SHARED_D4RL.parent.resolve()  # ../shared may be a symlink
 
 
 def test_shared_datasets_dir_override(tmp_path, monkeypatch):
