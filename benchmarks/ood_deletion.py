@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from baselines import machine_info, MAZE_HYPERPARAMETERS, train_baseline
-from run_grid import run_recipe
+from run_grid import run_recipe, save_figure
 from torchrl_tels.data import delete_regions, get_task, load_dataset, points_in_boxes
 from torchrl_tels.envs import make_eval_env, rollout_episodes
 from torchrl_tels.modules import load_tels_actor
@@ -296,11 +296,7 @@ def render_report(results_dir: Path) -> Path:
         fig.suptitle(f"{setup_name}: data (blue), deleted regions (red), {ROLLOUTS} rollouts "
                      "(green: reached the goal)", fontsize=9)
         fig.tight_layout()
-        out = results_dir / "plots" / f"{setup_name}.png"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp.png")
-        fig.savefig(tmp, dpi=110)
-        os.replace(tmp, out)
+        save_figure(fig, results_dir / "plots" / f"{setup_name}.png")
         plt.close(fig)
     lines += [""] + [f"![{name}](plots/{name}.png)" for name in sorted(found)] + [
         "", "Each result JSON holds its command, date, machine, thread count, budget, the deleted counts "

@@ -396,7 +396,7 @@ def _shown(path: Path) -> str:
         return str(path)
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
     fig.savefig(tmp, dpi=120)
@@ -437,7 +437,7 @@ def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    paths.append(_save(fig, folder / "scores_by_task.png"))
+    paths.append(save_figure(fig, folder / "scores_by_task.png"))
     plt.close(fig)
 
     # Fig. 4 (left) of the paper: the same IQL on raw states and on TS-IDM latents, seeds as dots.
@@ -461,7 +461,7 @@ def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        paths.append(_save(fig, folder / "iql_latent_vs_raw.png"))
+        paths.append(save_figure(fig, folder / "iql_latent_vs_raw.png"))
         plt.close(fig)
 
     for task in tasks:
@@ -486,7 +486,7 @@ def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        paths.append(_save(fig, folder / f"curves_{task}.png"))
+        paths.append(save_figure(fig, folder / f"curves_{task}.png"))
         plt.close(fig)
     return paths
 

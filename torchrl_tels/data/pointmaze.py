@@ -187,12 +187,17 @@ class WaypointController:
             raise ValueError(f"goal cell {goal_cell} cannot be reached from {start_cell}.")
         path = [start_cell]
         while path[-1] != goal_cell:
-            i, j = path[-1]
-            path.append(next(
-                (i + di, j + dj) for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1))
-                if self._is_free((i + di, j + dj)) and distance[i + di, j + dj] == distance[i, j] - 1
-            ))
+            path.append(self._next_cell(path[-1], distance))
         return path
+
+    def _next_cell(self, cell: tuple[int, int], distance: np.ndarray) -> tuple[int, int]:
+        """The first free neighbour of ``cell`` one BFS step closer to the goal."""
+        i, j = cell
+        for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            neighbour = (i + di, j + dj)
+            if self._is_free(neighbour) and distance[neighbour] == distance[cell] - 1:
+                return neighbour
+        raise AssertionError("BFS distances are inconsistent")  # pragma: no cover
 
     def _cell(self, xy: np.ndarray) -> tuple[int, int]:
         i, j = self.maze.cell_xy_to_rowcol(xy)
@@ -218,12 +223,7 @@ class WaypointController:
         distance = self._distance_to(goal_cell)
         if distance[cell] < 0:
             raise ValueError(f"goal cell {goal_cell} cannot be reached from {cell}.")
-        i, j = cell
-        for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            neighbour = (i + di, j + dj)
-            if self._is_free(neighbour) and distance[neighbour] == distance[cell] - 1:
-                return self.maze.cell_rowcol_to_xy(np.array(neighbour))
-        raise AssertionError("BFS distances are inconsistent")  # pragma: no cover
+        return self.maze.cell_rowcol_to_xy(np.array(self._next_cell(cell, distance)))
 
     def action(
         self, position: np.ndarray, velocity: np.ndarray, goal: np.ndarray
