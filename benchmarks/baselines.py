@@ -45,7 +45,6 @@ the last ``eval_last_n`` (10) evaluations.
 from __future__ import annotations
 
 import copy
-import hashlib
 import os
 import platform
 import sys
@@ -65,6 +64,7 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
 
+from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.data import get_task, load_dataset, make_offline_replay_buffer, normalized_score
 from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
 from torchrl_tels.training import check_finite
@@ -234,10 +234,6 @@ def _build_bc(obs_key, obs_dim, action_spec, hp):
 _BUILDERS = {"iql": _build_iql, "iql_latent": _build_iql, "td3bc": _build_td3bc, "bc": _build_bc}
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def machine_info() -> dict:
     """What a speed figure needs next to it."""
     return {
@@ -336,7 +332,7 @@ def train_baseline(
         # Write time: the dataset is encoded once; the env encodes each observation with a clone.
         write_transforms = [encoder]
         env = TransformedEnv(env, encoder.clone())
-        extra["tsidm"] = {"path": str(tsidm_path), "sha256": _sha256(tsidm_path),
+        extra["tsidm"] = {"path": str(tsidm_path), "sha256": file_sha256(tsidm_path),
                           "latent_state_dim": encoder.latent_state_dim}
     elif hp["normalize_observations"]:
         obs = data["observation"]

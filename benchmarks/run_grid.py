@@ -81,10 +81,6 @@ PAPER_TABLE1 = {
 #: Task-name prefixes run with the recipe's maze preset (stochastic guide, AntMaze values, r - 1)
 #: and the baselines' maze hyperparameters.
 MAZE_PREFIXES = ("antmaze", "pointmaze")
-
-
-def is_maze(task: str) -> bool:
-    return task.startswith(MAZE_PREFIXES)
 PAPER_POLICY_STEPS = 100_000  # Table 11
 PAPER_TSIDM_EPOCHS = 1000  # Table 10
 EVAL_LAST_N = 10  # Table 1: final 10 evaluations
@@ -95,6 +91,10 @@ warnings.filterwarnings("ignore", message=r".*wasn't part of the annotations.*")
 
 
 # ------------------------------------------------------------------ paths
+def is_maze(task: str) -> bool:
+    return task.startswith(MAZE_PREFIXES)
+
+
 def result_path(results_dir: Path, method: str, task: str, seed: int) -> Path:
     return results_dir / method / task / f"seed{seed}.json"
 

@@ -1,6 +1,7 @@
 """Checkpoint files: written atomically, read with ``weights_only=True``, checked before use."""
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -8,11 +9,16 @@ from typing import Any
 
 import torch
 
-__all__ = ["CheckpointError", "atomic_save", "load_checkpoint"]
+__all__ = ["CheckpointError", "atomic_save", "file_sha256", "load_checkpoint"]
 
 
 class CheckpointError(RuntimeError):
     """A checkpoint file is missing, unreadable, not one of ours, or made for another setup."""
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex SHA-256 of a file's bytes: which checkpoint a result was made from."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def atomic_save(obj: Any, path: str | os.PathLike) -> Path:

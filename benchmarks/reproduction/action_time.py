@@ -16,7 +16,6 @@ writes ``benchmarks/reproduction/results/action_time/<task>/seed<k>.json``
 from __future__ import annotations
 
 import argparse
-import hashlib
 import platform
 import shlex
 import sys
@@ -25,6 +24,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
+
+from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.data import get_task, normalized_score
 from torchrl_tels.envs import evaluate_policy, make_eval_env
 from torchrl_tels.modules import load_tels_actor
@@ -36,10 +37,6 @@ VARIANTS = {
     "reencode": {"reencode_proposal": True, "inverse_dropout": False},  # choice 7
     "dropout": {"reencode_proposal": False, "inverse_dropout": True},  # choice 6
 }
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def main(argv=None) -> None:
@@ -63,15 +60,15 @@ def main(argv=None) -> None:
             raise SystemExit(f"no finished TELS run in {run_dir}: run benchmarks/run_grid.py --method tels first")
         env = make_eval_env(task.env_id)  # as the recipe evaluates
         record = {"task": args.task, "seed": seed, "episodes": args.episodes, "run_dir": str(run_dir),
-                  "policy_sha256": _sha256(run_dir / "policy.pt"), "tsidm_sha256": _sha256(run_dir / "tsidm.pt"),
+                  "policy_sha256": file_sha256(run_dir / "policy.pt"), "tsidm_sha256": file_sha256(run_dir / "tsidm.pt"),
                   "command": shlex.join([sys.executable, *sys.argv]),
                   "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                   "machine": {"platform": platform.platform(), "threads": args.threads}, "variants": {}}
         for name, options in VARIANTS.items():
             start = time.perf_counter()
             torch.manual_seed(seed)  # the dropout masks
-            actor = load_tels_actor(run_dir / "policy.pt", run_dir / "tsidm.pt", env.action_spec,
-                                    **options)
+            # Loaded after seeding, as when these results were made: building the TS-IDM draws from the RNG.
+            actor = load_tels_actor(run_dir / "policy.pt", run_dir / "tsidm.pt", env.action_spec, **options)
             returns = evaluate_policy(actor, env, args.episodes, seed=2_000_000 + 1000 * seed,
                                       max_steps=task.max_episode_steps)
             scores = [normalized_score(task, r) for r in returns]
