@@ -21,6 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from torchrl_tels.config import native_bf16_supported
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -53,6 +55,10 @@ def main():
     parser.add_argument("--episodes", type=int, default=2)
     parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"])
     args = parser.parse_args()
+    if "bf16" in args.precisions and not native_bf16_supported():
+        # the recipe refuses it here (emulated bf16 is tens of times slower): benchmarks/step_floor.py times it
+        print("bf16 skipped: this CPU has no native bf16 matrix multiplication")
+        args.precisions = [p for p in args.precisions if p != "bf16"]
     print(f"recipe at paper widths, hopper-medium-v2 10k, torch threads pinned to {args.threads}; "
           f"{args.tsidm_steps} TS-IDM + {args.policy_steps} policy steps per run, "
           f"median of {args.repeats} interleaved runs per precision")

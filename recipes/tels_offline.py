@@ -27,7 +27,14 @@ import tqdm
 from omegaconf import DictConfig, OmegaConf
 from torchrl.objectives import SoftUpdate
 
-from torchrl_tels.config import check_same_run, check_writable_folder, ConfigError, training_config, validate_config
+from torchrl_tels.config import (
+    check_precision_supported,
+    check_same_run,
+    check_writable_folder,
+    ConfigError,
+    training_config,
+    validate_config,
+)
 from torchrl_tels.data import (
     DatasetError,
     delete_regions,
@@ -138,6 +145,7 @@ def main(cfg: DictConfig) -> dict:
 def train(cfg: DictConfig) -> dict:
     # ----------------------------------------------------------------- setup
     validate_config(cfg)
+    check_precision_supported(cfg.precision)
     run_config = training_config(cfg)  # stored in every checkpoint; resume=true must match it
     run_dir = check_writable_folder(hydra.utils.to_absolute_path(cfg.run_dir))
     if cfg.threads:

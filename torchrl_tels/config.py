@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 __all__ = [
     "ConfigError",
     "RESUMABLE_KEYS",
+    "check_precision_supported",
     "check_same_run",
     "check_writable_folder",
     "training_config",
@@ -126,6 +127,29 @@ def validate_config(cfg) -> None:
         value = OmegaConf.select(cfg, path)
         if value not in allowed:
             raise ConfigError(f"{path} must be one of {allowed}, got {value!r}.")
+
+
+def native_bf16_supported() -> bool:
+    """Whether this CPU multiplies bf16 matrices natively (AVX512-BF16 or AMX), as oneDNN reports it."""
+    import torch
+
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
+def check_precision_supported(precision: str) -> None:
+    """Raises :class:`ConfigError` for ``precision=bf16`` on a CPU without native bf16.
+
+    Without it, autocast emulates bf16 and a TELS step runs tens of times
+    slower than fp32 (BENCHMARKS.md), so the request is refused, not obeyed.
+    """
+    if precision == "bf16" and not native_bf16_supported():
+        import torch
+
+        raise ConfigError(
+            f"precision=bf16 needs a CPU with native bf16 matrix multiplication (AVX512-BF16 or AMX); "
+            f"this one offers {torch.backends.cpu.get_cpu_capability()}, where bf16 autocast is emulated and "
+            f"runs tens of times slower than fp32. Use precision=fp32."
+        )
 
 
 def training_config(cfg) -> dict:
