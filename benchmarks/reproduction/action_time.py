@@ -11,7 +11,8 @@ three ways on the same episode seeds::
     python benchmarks/reproduction/action_time.py --task hopper-medium-v2-10k --seed 0 1 2 --episodes 20
 
 writes ``benchmarks/reproduction/results/action_time/<task>/seed<k>.json``
-(temp file + rename; skipped if it exists unless ``--force``).
+(temp file + rename; skipped if it exists unless ``--force``). ``--work-dir`` and
+``--results-name`` point it at other runs, e.g. the paper-budget ones.
 """
 from __future__ import annotations
 
@@ -46,12 +47,14 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--work-dir", type=Path, default=REPO / "runs" / "benchmarks")
+    parser.add_argument("--results-name", default="action_time",
+                        help="results land in benchmarks/reproduction/results/<this>/<task>/seed<k>.json")
     parser.add_argument("--force", action="store_true")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     task = get_task(args.task)
     for seed in args.seed:
-        out = REPO / "benchmarks" / "reproduction" / "results" / "action_time" / args.task / f"seed{seed}.json"
+        out = REPO / "benchmarks" / "reproduction" / "results" / args.results_name / args.task / f"seed{seed}.json"
         if out.exists() and not args.force:
             print(f"{out} exists; skipping")
             continue
