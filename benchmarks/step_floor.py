@@ -65,40 +65,29 @@ def make_stages(data):
         times[name] = times.get(name, 0.0) + 1e3 * (now - start)
         return now
 
+    def train_phase(times, prefix, loss, optim, batch, precision, t):
+        # forward under the recipe's autocast, backward of the loss_* sum, Adam: each timed on its own
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+            losses = loss(batch)
+        t = timed(times, f"{prefix}forward", t)
+        optim.zero_grad()
+        sum_losses(losses).backward()
+        t = timed(times, f"{prefix}backward", t)
+        optim.step()
+        return timed(times, f"{prefix}adam", t)
+
     def tsidm_step(times, precision):
         t = time.perf_counter()
         batch = tsidm_buffer.sample()
         t = timed(times, "sample", t)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
-            losses = tsidm_loss(batch)
-        t = timed(times, "forward", t)
-        tsidm_optim.zero_grad()
-        sum_losses(losses).backward()
-        t = timed(times, "backward", t)
-        tsidm_optim.step()
-        timed(times, "adam", t)
+        train_phase(times, "", tsidm_loss, tsidm_optim, batch, precision, t)
 
     def policy_step(times, precision):
-        autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16")
         t = time.perf_counter()
         batch = buffer.sample()
         t = timed(times, "sample", t)
-        with autocast:
-            value_losses = value_loss(batch)
-        t = timed(times, "value_forward", t)
-        value_optim.zero_grad()
-        value_losses["loss_value"].backward()
-        t = timed(times, "value_backward", t)
-        value_optim.step()
-        t = timed(times, "value_adam", t)
-        with autocast:
-            guide_losses = guide_loss(batch)
-        t = timed(times, "guide_forward", t)
-        guide_optim.zero_grad()
-        sum_losses(guide_losses).backward()
-        t = timed(times, "guide_backward", t)
-        guide_optim.step()
-        t = timed(times, "guide_adam", t)
+        t = train_phase(times, "value_", value_loss, value_optim, batch, precision, t)
+        t = train_phase(times, "guide_", guide_loss, guide_optim, batch, precision, t)
         target.step()
         timed(times, "target_update", t)
 

@@ -268,7 +268,7 @@ def test_out_of_range_hyperparameter(recipe, capsys, tmp_path, override, expecte
 
 
 def test_bf16_refused_on_a_cpu_without_native_bf16(recipe, capsys, tmp_path, monkeypatch):
-    # On an AVX2-only CPU bf16 autocast is emulated: a policy step measured 45x slower than fp32.
+    # On an AVX2-only CPU bf16 autocast is emulated: steps ran 26-37x slower than fp32 (BENCHMARKS.md).
     monkeypatch.setattr(config_module, "native_bf16_supported", lambda: False)
     message = expect_error(recipe, capsys, tmp_path / "run", "precision=bf16")
     assert message.startswith("precision=bf16 needs a CPU with native bf16 matrix multiplication")
