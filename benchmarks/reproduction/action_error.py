@@ -1,0 +1,145 @@
+"""Issue 8: where a trained TELS actor's actions go wrong, measured on its own dataset.
+
+The Eq. (11) actor chains two learned maps: the guide proposes z' = π_g(z), then
+ψ_a(h_inv(z, z')) turns the pair into an action. Plain BC beats the actor on the
+D4RL-10k files, so this script splits the actor's action error on the dataset's
+own transitions into its parts:
+
+* ``oracle``: ψ_a(h_inv(z, φ_s(s'))) with the dataset's true next state, the best
+  the guide could do (the TS-IDM's own inverse-dynamics error);
+* ``guide``: ψ_a(h_inv(z, π_g(z))), the actor as it acts (Eq. 11);
+* ``reencode``: ψ_a(h_inv(z, φ_s(ψ_s(π_g(z))))), choice 7;
+* ``no_step``: ψ_a(h_inv(z, z)), an action inferred from no move at all;
+* ``mean_action``: the dataset's mean action for every state;
+* ``bc``: an MLP fitted to (s, a) by MSE on the same transitions (torchrl MLP, 256x256, 5k Adam steps);
+
+and the guide's latent error ||π_g(z) - z'||² next to the size of the step
+||z' - z||² it has to predict. All errors are mean squared over action
+dimensions. A run trained on a ``dataset.size`` subset is also scored on the
+transitions it never saw (``held_out``), which separates fit from generalization::
+
+    python benchmarks/reproduction/action_error.py --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
+
+writes ``benchmarks/reproduction/results/action_error/<name>.json`` (temp file + rename).
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import shlex
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+import yaml
+from tensordict import TensorDict
+from torchrl.modules import MLP
+
+from torchrl_tels.data import load_dataset, subsample_transitions, subset_trajectories
+from torchrl_tels.modules import TSIDM, load_tels_actor
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
+from torchrl_tels.training import write_json
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int, apply_to: torch.Tensor) -> torch.Tensor:
+    """BC fitted on the run's training transitions, then applied to ``apply_to``: the error the actor's chain has to beat."""
+    torch.manual_seed(seed)
+    loc, scale = observation.mean(0), observation.std(0).clamp_min(1e-3)
+    x = (observation - loc) / scale
+    net = MLP(in_features=x.shape[-1], out_features=action.shape[-1], num_cells=[256, 256], activation_class=torch.nn.ReLU)
+    optim = torch.optim.Adam(net.parameters(), lr=3e-4)
+    generator = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        idx = torch.randint(0, x.shape[0], (256,), generator=generator)
+        loss = (torch.tanh(net(x[idx])) - action[idx]).pow(2).mean()
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+    with torch.no_grad():
+        return torch.tanh(net((apply_to - loc) / scale))
+
+
+def training_rows(data: TensorDict, dataset_cfg: dict, seed: int) -> torch.Tensor:
+    """The rows the run trained on: all of them, or the recipe's ``dataset.size`` subset (same draw)."""
+    if not dataset_cfg.get("size"):
+        return torch.ones(len(data), dtype=torch.bool)
+    subset = subset_trajectories if dataset_cfg.get("subset") == "trajectories" else subsample_transitions
+    tagged = data.clone(False)
+    tagged.set("row", torch.arange(len(data)))
+    kept = torch.zeros(len(data), dtype=torch.bool)
+    kept[subset(tagged, int(dataset_cfg["size"]), seed=seed)["row"]] = True
+    return kept
+
+
+def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    data = load_dataset(config["dataset"]["name"])
+    train = training_rows(data, config["dataset"], config["seed"])
+    observation, next_observation, action = data["observation"], data["next", "observation"], data["action"]
+    tsidm = TSIDM.load(run_dir / "tsidm.pt").eval()
+    actor = load_tels_actor(run_dir / "policy.pt", tsidm)  # no action spec: clipped below, as the env's [-1, 1]
+    with torch.no_grad():
+        out = actor(TensorDict({"observation": observation}, batch_size=observation.shape[:1]))
+        z, proposal = out[LATENT_KEY], out[GUIDE_KEY]
+        z_next = tsidm.encode_state(next_observation)
+        reencoded = tsidm.state_encoder(tsidm.decode_state(proposal))
+
+        def act(z_prime):
+            return tsidm.decode_action(tsidm.infer_latent_action(z, z_prime)).clamp(-1, 1)
+
+        predictions = {
+            "oracle": act(z_next),
+            "guide": act(proposal),
+            "reencode": act(reencoded),
+            "no_step": act(z),
+            "mean_action": action[train].mean(0).expand_as(action),
+        }
+    predictions["bc"] = fit_bc(observation[train], action[train], bc_steps, seed, apply_to=observation)
+    splits = {"train": train} if train.all() else {"train": train, "held_out": ~train}
+    record = {"dataset": config["dataset"]["name"], "transitions": {k: int(m.sum()) for k, m in splits.items()}}
+    for split, rows in splits.items():
+        step = (z_next[rows] - z[rows]).pow(2).sum(-1).mean()
+        guide_error = (proposal[rows] - z_next[rows]).pow(2).sum(-1).mean()
+        record[split] = {
+            "action_mse": {name: (pred[rows] - action[rows]).pow(2).mean().item() for name, pred in predictions.items()},
+            "latent_step_sq": step.item(),
+            "guide_latent_error_sq": guide_error.item(),
+            "guide_error_over_step": (guide_error / step).item(),
+        }
+    return record
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dir", type=Path, required=True, help="a finished recipe run: config.yaml, tsidm.pt, policy.pt")
+    parser.add_argument("--name", required=True, help="results land in results/action_error/<name>.json")
+    parser.add_argument("--bc-steps", type=int, default=5000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    for required in ("config.yaml", "tsidm.pt", "policy.pt"):
+        if not (args.run_dir / required).exists():
+            raise SystemExit(f"error: {args.run_dir / required} is missing: pass a finished run folder")
+    record = action_errors(args.run_dir, args.bc_steps, args.seed)
+    record.update(run_dir=str(args.run_dir), command=shlex.join([sys.executable, *sys.argv]),
+                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  machine={"platform": platform.platform(), "threads": args.threads})
+    for split in ("train", "held_out"):
+        if split not in record:
+            continue
+        r = record[split]
+        print(f"{split} ({record['transitions'][split]} transitions): action MSE "
+              + ", ".join(f"{name} {value:.4f}" for name, value in r["action_mse"].items()))
+        print(f"{split}: guide latent error / latent step = {r['guide_latent_error_sq']:.4f} / "
+              f"{r['latent_step_sq']:.4f} = {r['guide_error_over_step']:.3f}")
+    out = REPO / "benchmarks" / "reproduction" / "results" / "action_error" / f"{args.name}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(out, record)
+
+
+if __name__ == "__main__":
+    main()
