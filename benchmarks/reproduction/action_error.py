@@ -64,6 +64,9 @@ def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: in
 
 def training_rows(data: TensorDict, dataset_cfg: dict, seed: int) -> torch.Tensor:
     """The rows the run trained on: all of them, or the recipe's ``dataset.size`` subset (same draw)."""
+    if dataset_cfg.get("delete_boxes"):
+        # The recipe deletes regions after subsetting; telling those rows apart is not implemented.
+        raise SystemExit("error: the run deleted dataset regions (dataset.delete_boxes): its training rows are not known here")
     if not dataset_cfg.get("size"):
         return torch.ones(len(data), dtype=torch.bool)
     subset = subset_trajectories if dataset_cfg.get("subset") == "trajectories" else subsample_transitions
