@@ -42,8 +42,7 @@ from torchrl_tels.data import (
     load_dataset,
     make_offline_replay_buffer,
     normalized_score,
-    subsample_transitions,
-    subset_trajectories,
+    subset_dataset,
 )
 from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, save_guide_policy, TSIDM
@@ -174,8 +173,7 @@ def train(cfg: DictConfig) -> dict:
         source = hydra.utils.to_absolute_path(str(dataset_name))
     data = load_dataset(source)
     if cfg.dataset.size:
-        subset = subset_trajectories if cfg.dataset.subset == "trajectories" else subsample_transitions
-        data = subset(data, int(cfg.dataset.size), seed=cfg.seed)
+        data = subset_dataset(data, int(cfg.dataset.size), seed=cfg.seed, mode=cfg.dataset.subset)
     if cfg.dataset.delete_boxes:
         if max(cfg.dataset.delete_xy) >= data["observation"].shape[-1]:
             raise DatasetError(f"dataset.delete_xy={list(cfg.dataset.delete_xy)} names a column beyond the "

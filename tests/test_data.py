@@ -21,6 +21,7 @@ from torchrl_tels.data import (
     points_in_boxes,
     shared_datasets_dir,
     subsample_transitions,
+    subset_dataset,
     subset_trajectories,
 )
 
@@ -512,6 +513,18 @@ def test_subset_trajectories_stops_at_first_reaching_draw():
     # Equal lengths make the count exact: ceil(100 / 30) = 4 trajectories.
     subset = subset_trajectories(make_transitions([30] * 8), 100, seed=5)
     assert episode_lengths(subset) == [30] * 4
+
+
+def test_subset_dataset_dispatches_on_mode():
+    data = make_transitions([30, 50, 20, 40, 60, 10, 25])
+    by_trajectory = subset_dataset(data, 100, seed=3, mode="trajectories")
+    assert torch.equal(by_trajectory["row"], subset_trajectories(data, 100, seed=3)["row"])
+    by_transition = subset_dataset(data, 100, seed=3, mode="transitions")
+    assert torch.equal(by_transition["row"], subsample_transitions(data, 100, seed=3)["row"])
+    # Uniform rows cut trajectories; whole-trajectory draws do not.
+    assert not _whole_trajectories(by_transition, data)
+    with pytest.raises(ValueError, match="subset mode must be one of"):
+        subset_dataset(data, 100, seed=3, mode="episodes")
 
 
 def test_subset_trajectories_seeded():

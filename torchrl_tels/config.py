@@ -9,6 +9,8 @@ from typing import Any, Mapping
 
 from omegaconf import OmegaConf
 
+from torchrl_tels.data.subsets import SUBSET_MODES
+
 __all__ = [
     "ConfigError",
     "RESUMABLE_KEYS",
@@ -119,7 +121,7 @@ def validate_config(cfg) -> None:
         "tsidm.ablation": ("ae", "dyn", "ode", "full"),
         "tsidm.dim_reduction": ("sum", "mean"),
         "guide.mode": ("deterministic", "stochastic"),
-        "dataset.subset": ("trajectories", "transitions"),
+        "dataset.subset": SUBSET_MODES,
         "logger.wandb_mode": ("online", "offline", "disabled"),
         "precision": ("fp32", "bf16"),
     }

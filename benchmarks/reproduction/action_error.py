@@ -36,7 +36,7 @@ import yaml
 from tensordict import TensorDict
 from torchrl.modules import MLP
 
-from torchrl_tels.data import load_dataset, subsample_transitions, subset_trajectories
+from torchrl_tels.data import load_dataset, subset_dataset
 from torchrl_tels.modules import TSIDM, load_tels_actor
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 from torchrl_tels.training import write_json
@@ -69,11 +69,10 @@ def training_rows(data: TensorDict, dataset_cfg: dict, seed: int) -> torch.Tenso
         raise SystemExit("error: the run deleted dataset regions (dataset.delete_boxes): its training rows are not known here")
     if not dataset_cfg.get("size"):
         return torch.ones(len(data), dtype=torch.bool)
-    subset = subset_trajectories if dataset_cfg.get("subset") == "trajectories" else subsample_transitions
     tagged = data.clone(False)
     tagged.set("row", torch.arange(len(data)))
     kept = torch.zeros(len(data), dtype=torch.bool)
-    kept[subset(tagged, int(dataset_cfg["size"]), seed=seed)["row"]] = True
+    kept[subset_dataset(tagged, int(dataset_cfg["size"]), seed=seed, mode=dataset_cfg.get("subset", "trajectories"))["row"]] = True
     return kept
 
 

@@ -13,9 +13,11 @@ from torchrl_tels.data.datasets import (
 from torchrl_tels.data.replay import make_offline_replay_buffer
 from torchrl_tels.data.subsets import (
     PAPER_SUBSET_SIZES,
+    SUBSET_MODES,
     delete_regions,
     points_in_boxes,
     subsample_transitions,
+    subset_dataset,
     subset_trajectories,
 )
 from torchrl_tels.data.tasks import (
@@ -32,6 +34,7 @@ __all__ = [
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
     "PAPER_SUBSET_SIZES",
+    "SUBSET_MODES",
     "DatasetError",
     "Task",
     "collect_minari_dataset",
@@ -47,6 +50,7 @@ __all__ = [
     "register_task",
     "shared_datasets_dir",
     "subsample_transitions",
+    "subset_dataset",
     "subset_trajectories",
 ]
 

@@ -20,6 +20,8 @@ from torchrl_tels.data.datasets import DatasetError
 
 __all__ = [
     "PAPER_SUBSET_SIZES",
+    "SUBSET_MODES",
+    "subset_dataset",
     "subset_trajectories",
     "subsample_transitions",
     "points_in_boxes",
@@ -131,6 +133,25 @@ def subsample_transitions(data: TensorDictBase, size: int, seed: int) -> TensorD
     _check_size(data, size)
     rows = torch.randperm(len(data), generator=_generator(seed))[:size].sort().values
     return data[rows]
+
+
+#: How :func:`subset_dataset` cuts a dataset down (Appendix D.1 uses both).
+SUBSET_MODES: tuple[str, ...] = ("trajectories", "transitions")
+
+
+def subset_dataset(data: TensorDictBase, size: int, seed: int, mode: str = "trajectories") -> TensorDictBase:
+    """The ``size``-transition subset of ``data`` that a run with this ``seed`` trains on.
+
+    ``mode="trajectories"`` calls :func:`subset_trajectories` (whole trajectories),
+    ``mode="transitions"`` calls :func:`subsample_transitions` (uniform rows). The recipe
+    and the diagnostics that need to know a run's training rows both call this, so they
+    draw the same subset.
+    """
+    if mode == "trajectories":
+        return subset_trajectories(data, size, seed=seed)
+    if mode == "transitions":
+        return subsample_transitions(data, size, seed=seed)
+    raise ValueError(f"subset mode must be one of {SUBSET_MODES}, got {mode!r}.")
 
 
 def _xy(
