@@ -42,7 +42,7 @@ import torch
 import yaml
 
 from baselines import machine_info, MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
-from torchrl_tels.training import write_json  # temp file + rename: a skip check never sees half a file
+from torchrl_tels.training import write_json, write_text  # temp file + rename: a skip check never sees half a file
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "tels_offline.py"
@@ -383,9 +383,7 @@ def render_table(results_dir: Path) -> Path:
     lines += ["", "Each result JSON holds its command, date, machine, thread count, budget and "
               "hyperparameters; `python benchmarks/run_grid.py --table` rebuilds this file.", ""]
     out = results_dir / "TABLE.md"
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, out)
+    write_text(out, "\n".join(lines))
     return out
 
 

@@ -32,6 +32,7 @@ from torchrl_tels.config import ConfigError, training_config, validate_config
 from torchrl_tels.data import embedded_dataset_path
 from torchrl_tels.modules import TSIDM
 from torchrl_tels.record import RunLogger
+from torchrl_tels.training import write_json, write_text
 from torchrl_tels.training import (
     NonFiniteLossError,
     is_user_error,
@@ -481,3 +482,26 @@ def test_wandb_error_mid_run_falls_back_to_csv(tmp_path, monkeypatch):
     messages = _wandb_warnings(caught)
     assert len(messages) == 1 and "ConnectionError: wandb service went away" in messages[0]
     assert _csv_rows(tmp_path / "run", "train/loss") == ["1,0.5", "2,1.0", "3,1.5"]
+
+
+def test_write_text_replaces_whole_file_and_leaves_no_temp(tmp_path, monkeypatch):
+    target = tmp_path / "TABLE.md"
+    write_text(target, "old")
+    # A failure while writing the new text must leave the old file as it was.
+    real_write = Path.write_text
+
+    def failing_write(self, text, *args, **kwargs):
+        real_write(self, text[:2], *args, **kwargs)
+        raise OSError("disk full")
+
+    monkeypatch.setattr(Path, "write_text", failing_write)
+    with pytest.raises(OSError, match="disk full"):
+        write_text(target, "new table")
+    monkeypatch.undo()
+    assert target.read_text() == "old"
+    assert not list(tmp_path.glob("*.tmp")), "the failed write left its temporary file"
+    write_text(target, "new table")
+    write_json(tmp_path / "r.json", {"b": 1, "a": 2})
+    assert target.read_text() == "new table"
+    assert (tmp_path / "r.json").read_text() == '{\n  "a": 2,\n  "b": 1\n}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["TABLE.md", "r.json"]

@@ -28,6 +28,7 @@ __all__ = [
     "set_rng_state",
     "sum_losses",
     "write_json",
+    "write_text",
 ]
 
 TRAINING_STATE_FORMAT = "torchrl_tels.training_state/v1"
@@ -125,12 +126,21 @@ def load_training_state(path: str | os.PathLike) -> dict[str, Any]:
     return load_checkpoint(path, TRAINING_STATE_FORMAT)
 
 
-def write_json(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
-    """JSON, written to a temporary file and renamed, so a reader never sees half a file."""
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """Text, written to a temporary file and renamed, so a reader never sees half a file."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # per process: concurrent writers never share one
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
+    """JSON, written atomically as :func:`write_text` does."""
+    write_text(path, json.dumps(payload, indent=2, sort_keys=True))
 
 
 def plot_curves(

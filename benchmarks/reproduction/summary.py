@@ -1,0 +1,99 @@
+"""One table of every training-time variant of the reproduction study, at the shared budget.
+
+    python benchmarks/reproduction/summary.py [--out benchmarks/reproduction/SUMMARY.md]
+
+Rows are the variants under ``results/<variant>/`` that ran with the shared budget
+(``run_choice.py --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10``)
+and the Table 3 ablations of the issue-6 grid; columns are tasks. A cell lists the score of each
+seed (final = mean of the last 10 evaluations) and, after the arrow, the mean change against the
+paper-default arm (the issue-6 grid's TELS runs) over the seeds both have. BC on the same file and
+budget closes the table. Variants that change the data (``dataset.size`` hold-outs) or the budget
+are diagnostics, not choices, and are left out.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+from torchrl_tels.training import write_text
+
+HERE = Path(__file__).resolve().parent
+GRID = HERE.parent / "results"
+SHARED_BUDGET = ["tsidm.steps=3000", "optim.steps=5000", "eval.interval=500", "eval.episodes=10"]
+GRID_BUDGET = ("--steps=5000", "--tsidm-steps=3000", "--eval-interval=500", "--eval-episodes=10")
+TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
+ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
+
+
+def _scores(folder: Path, keep) -> dict[str, dict[int, float]]:
+    """{task: {seed: final score}} of the JSONs under ``folder`` that ``keep`` accepts."""
+    found: dict[str, dict[int, float]] = {}
+    for path in sorted(folder.glob("*/seed*.json")):
+        result = json.loads(path.read_text())
+        if keep(result):
+            found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
+    return found
+
+
+def _grid_arm(method: str) -> dict[str, dict[int, float]]:
+    return _scores(GRID / method, lambda r: all(flag in r.get("command", "") for flag in GRID_BUDGET))
+
+
+def _variant_arms() -> dict[str, tuple[str, dict]]:
+    arms = {}
+    for folder in sorted(p for p in (HERE / "results").iterdir() if p.is_dir()):
+        found = _scores(folder, lambda r: r.get("budget") == SHARED_BUDGET and "variant" in r
+                        and not any(o.startswith("dataset.") for o in r.get("overrides", [])))
+        if found:
+            overrides = next(json.loads(p.read_text())["overrides"] for p in folder.glob("*/seed*.json"))
+            arms[folder.name] = (" ".join(overrides), found)
+    return arms
+
+
+def _cell(scores: dict[int, float], default: dict[int, float] | None) -> str:
+    if not scores:
+        return ""
+    seeds = sorted(scores)
+    label = (lambda s: "") if seeds == list(range(len(seeds))) else (lambda s: f"s{s} ")
+    text = ", ".join(f"{label(s)}{scores[s]:.1f}" for s in seeds)
+    if default is not None:
+        paired = [scores[s] - default[s] for s in scores if s in default]
+        if paired:
+            text += f" → {statistics.mean(paired):+.1f}"
+    return text
+
+
+def render() -> str:
+    default, bc = _grid_arm("tels"), _grid_arm("bc")
+    lines = ["| variant | overrides | " + " | ".join(TASKS) + " |", "|---" * (len(TASKS) + 2) + "|"]
+
+    def row(name: str, overrides: str, found: dict, compare: bool = True) -> None:
+        cells = [_cell(found.get(t, {}), default.get(t, {}) if compare else None) for t in TASKS]
+        lines.append(f"| {name} | {overrides} | " + " | ".join(cells) + " |")
+
+    row("paper defaults (issue-6 grid TELS)", "(none)", default, compare=False)
+    for name, (overrides, found) in _variant_arms().items():
+        row(name, f"`{overrides}`", found)
+    for method in ABLATIONS:
+        row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
+    row("BC (issue-6 grid)", "", bc)
+    means = " / ".join(f"{statistics.mean(default[t].values()):.1f}" for t in TASKS if t in default)
+    return "\n".join(lines) + (
+        "\n\nCells: score per seed (seeds 0, 1, ... unless marked sK) → mean paired change against the paper"
+        f" defaults.\nPaper-default means per task: {means}.\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, help="also write the table here (markdown)")
+    args = parser.parse_args()
+    table = render()
+    print(table)
+    if args.out:
+        write_text(args.out, table)
+
+
+if __name__ == "__main__":
+    main()
