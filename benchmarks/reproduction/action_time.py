@@ -12,7 +12,8 @@ three ways on the same episode seeds::
 
 writes ``benchmarks/reproduction/results/action_time/<task>/seed<k>.json``
 (temp file + rename; skipped if it exists unless ``--force``). ``--work-dir`` and
-``--results-name`` point it at other runs, e.g. the paper-budget ones.
+``--results-name`` point it at other runs, e.g. the paper-budget ones; ``--runs`` names the
+folder of ``run_choice.py`` variants (``--work-dir runs/reproduction --runs latent2x``).
 """
 from __future__ import annotations
 
@@ -47,6 +48,8 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--work-dir", type=Path, default=REPO / "runs" / "benchmarks")
+    parser.add_argument("--runs", default="tels", help="folder under --work-dir holding <task>/seed<k> runs; "
+                        "e.g. --work-dir runs/reproduction --runs latent2x for run_choice.py's runs")
     parser.add_argument("--results-name", default="action_time",
                         help="results land in benchmarks/reproduction/results/<this>/<task>/seed<k>.json")
     parser.add_argument("--force", action="store_true")
@@ -58,7 +61,7 @@ def main(argv=None) -> None:
         if out.exists() and not args.force:
             print(f"{out} exists; skipping")
             continue
-        run_dir = args.work_dir / "tels" / args.task / f"seed{seed}"
+        run_dir = args.work_dir / args.runs / args.task / f"seed{seed}"
         if not (run_dir / "policy.pt").exists():
             raise SystemExit(f"no finished TELS run in {run_dir}: run benchmarks/run_grid.py --method tels first")
         env = make_eval_env(task.env_id)  # as the recipe evaluates
