@@ -47,8 +47,10 @@ def _variant_arms() -> dict[str, tuple[str, dict]]:
         found = _scores(folder, lambda r: r.get("budget") == SHARED_BUDGET and "variant" in r
                         and not any(o.startswith("dataset.") for o in r.get("overrides", [])))
         if found:
-            overrides = next(json.loads(p.read_text())["overrides"] for p in folder.glob("*/seed*.json"))
-            arms[folder.name] = (" ".join(overrides), found)
+            # Sizes that follow the task (e.g. latent dims) make the overrides differ per task.
+            overrides = dict.fromkeys(" ".join(json.loads(p.read_text())["overrides"])
+                                      for p in sorted(folder.glob("*/seed*.json")))
+            arms[folder.name] = ("` / `".join(overrides), found)
     return arms
 
 
