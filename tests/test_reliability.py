@@ -505,3 +505,13 @@ def test_write_text_replaces_whole_file_and_leaves_no_temp(tmp_path, monkeypatch
     assert target.read_text() == "new table"
     assert (tmp_path / "r.json").read_text() == '{\n  "a": 2,\n  "b": 1\n}'
     assert sorted(p.name for p in tmp_path.iterdir()) == ["TABLE.md", "r.json"]
+
+
+def test_presets_choose_the_eq11_reading_the_study_measured():
+    """MuJoCo re-encodes the guide's proposal (issue 8, choice 7); AntMaze keeps Eq. (11) as written."""
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        mujoco, maze = compose("config"), compose("config", overrides=["preset=maze"])
+    assert mujoco.guide.mode == "deterministic" and mujoco.guide.reencode_proposal is True
+    assert maze.guide.mode == "stochastic" and maze.guide.reencode_proposal is False
+    # Everything else in the MuJoCo preset is the paper's base config.
+    assert mujoco.guide.alpha == 0.01 and mujoco.value.target_update_rate == 0.05
