@@ -27,29 +27,28 @@ TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium
 ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
 
 
-def _scores(folder: Path, keep) -> dict[str, dict[int, float]]:
-    """{task: {seed: final score}} of the JSONs under ``folder`` that ``keep`` accepts."""
+def _grid_arm(method: str) -> dict[str, dict[int, float]]:
+    """{task: {seed: final score}} of the issue-6 grid's runs of ``method`` at the shared budget."""
     found: dict[str, dict[int, float]] = {}
-    for path in sorted(folder.glob("*/seed*.json")):
+    for path in sorted((GRID / method).glob("*/seed*.json")):
         result = json.loads(path.read_text())
-        if keep(result):
+        if all(flag in result.get("command", "") for flag in GRID_BUDGET):
             found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
     return found
-
-
-def _grid_arm(method: str) -> dict[str, dict[int, float]]:
-    return _scores(GRID / method, lambda r: all(flag in r.get("command", "") for flag in GRID_BUDGET))
 
 
 def _variant_arms() -> dict[str, tuple[str, dict]]:
     arms = {}
     for folder in sorted(p for p in (HERE / "results").iterdir() if p.is_dir()):
-        found = _scores(folder, lambda r: r.get("budget") == SHARED_BUDGET and "variant" in r
-                        and not any(o.startswith("dataset.") for o in r.get("overrides", [])))
+        found: dict[str, dict[int, float]] = {}
+        overrides: dict[str, None] = {}  # ordered set: sizes that follow the task differ per task
+        for path in sorted(folder.glob("*/seed*.json")):
+            result = json.loads(path.read_text())
+            if (result.get("budget") == SHARED_BUDGET and "variant" in result
+                    and not any(o.startswith("dataset.") for o in result["overrides"])):
+                found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
+                overrides[" ".join(result["overrides"])] = None
         if found:
-            # Sizes that follow the task (e.g. latent dims) make the overrides differ per task.
-            overrides = dict.fromkeys(" ".join(json.loads(p.read_text())["overrides"])
-                                      for p in sorted(folder.glob("*/seed*.json")))
             arms[folder.name] = ("` / `".join(overrides), found)
     return arms
 
