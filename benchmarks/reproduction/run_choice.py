@@ -6,7 +6,9 @@
 
 writes benchmarks/reproduction/results/<name>/<task>/seed<k>.json (the run's results.json plus
 the exact command), and skips the run if that file exists. The baseline of a comparison is the
-same budget with no --override (name it "paper").
+same budget with no --override (the recipe's defaults, name it "default"); the paper-literal
+arm also needs ``--override guide.reencode_proposal=false``, since the ``mujoco`` preset
+re-encodes the guide's proposal (README, "Deviations from the paper").
 """
 from __future__ import annotations
 
