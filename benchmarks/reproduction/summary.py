@@ -5,9 +5,10 @@
 Rows are the variants under ``results/<variant>/`` that ran with the shared budget
 (``run_choice.py --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10``)
 and the Table 3 ablations of the issue-6 grid; columns are tasks. A cell lists the score of each
-seed (final = mean of the last 10 evaluations) and, after the arrow, the mean change against the
-paper-default arm (the issue-6 grid's TELS runs) over the seeds both have. BC on the same file and
-budget closes the table. Variants that change the data (``dataset.size`` hold-outs) or the budget
+seed (final = mean of the last 10 evaluations) and, after the arrow, the mean change over the seeds
+both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
+runs), or the ``reencode`` arm (the MuJoCo preset since the fourth session) for variants that ran
+with ``guide.reencode_proposal=true`` on top. BC on the same file and budget closes the table. Variants that change the data (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out.
 """
 from __future__ import annotations
@@ -25,6 +26,7 @@ SHARED_BUDGET = ["tsidm.steps=3000", "optim.steps=5000", "eval.interval=500", "e
 GRID_BUDGET = ("--steps=5000", "--tsidm-steps=3000", "--eval-interval=500", "--eval-episodes=10")
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
 ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
+REENCODE_ARM = "reencode"  # choice 7, the MuJoCo preset's reading of Eq. (11) since the fourth session
 
 
 def _grid_arm(method: str) -> dict[str, dict[int, float]]:
@@ -66,24 +68,31 @@ def _cell(scores: dict[int, float], default: dict[int, float] | None) -> str:
     return text
 
 
+def _means(arm: dict[str, dict[int, float]]) -> str:
+    return " / ".join(f"{statistics.mean(arm[t].values()):.1f}" if t in arm else "—" for t in TASKS)
+
+
 def render() -> str:
-    default, bc = _grid_arm("tels"), _grid_arm("bc")
-    lines = ["| variant | overrides | " + " | ".join(TASKS) + " |", "|---" * (len(TASKS) + 2) + "|"]
+    default, bc, variants = _grid_arm("tels"), _grid_arm("bc"), _variant_arms()
+    reencode = variants.get(REENCODE_ARM, ("", {}))[1]
+    lines = ["| variant | overrides | against | " + " | ".join(TASKS) + " |", "|---" * (len(TASKS) + 3) + "|"]
 
-    def row(name: str, overrides: str, found: dict, compare: bool = True) -> None:
-        cells = [_cell(found.get(t, {}), default.get(t, {}) if compare else None) for t in TASKS]
-        lines.append(f"| {name} | {overrides} | " + " | ".join(cells) + " |")
+    def row(name: str, overrides: str, found: dict, base: tuple[str, dict] | None = ("paper", default)) -> None:
+        cells = [_cell(found.get(t, {}), base[1].get(t, {}) if base else None) for t in TASKS]
+        lines.append(f"| {name} | {overrides} | {base[0] if base else ''} | " + " | ".join(cells) + " |")
 
-    row("paper defaults (issue-6 grid TELS)", "(none)", default, compare=False)
-    for name, (overrides, found) in _variant_arms().items():
-        row(name, f"`{overrides}`", found)
+    row("paper defaults (issue-6 grid TELS)", "(none)", default, base=None)
+    for name, (overrides, found) in variants.items():
+        on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
+        row(name, f"`{overrides}`", found, ("reencode", reencode) if on_reencode else ("paper", default))
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
     row("BC (issue-6 grid)", "", bc)
-    means = " / ".join(f"{statistics.mean(default[t].values()):.1f}" for t in TASKS if t in default)
     return "\n".join(lines) + (
-        "\n\nCells: score per seed (seeds 0, 1, ... unless marked sK) → mean paired change against the paper"
-        f" defaults.\nPaper-default means per task: {means}.\n")
+        "\n\nCells: score per seed (seeds 0, 1, ... unless marked sK) → mean paired change against the arm"
+        " named in 'against'.\n"
+        f"Means per task ({', '.join(TASKS)}): paper defaults {_means(default)}; "
+        f"re-encode arm (MuJoCo preset) {_means(reencode)}; BC {_means(bc)}.\n")
 
 
 def main() -> None:
