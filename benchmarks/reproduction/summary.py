@@ -8,8 +8,9 @@ and the Table 3 ablations of the issue-6 grid; columns are tasks. A cell lists t
 seed (final = mean of the last 10 evaluations) and, after the arrow, the mean change over the seeds
 both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
 runs), or the ``reencode`` arm (the MuJoCo preset since the fourth session) for variants that ran
-with ``guide.reencode_proposal=true`` on top. BC on the same file and budget closes the table. Variants that change the data (``dataset.size`` hold-outs) or the budget
-are diagnostics, not choices, and are left out.
+with ``guide.reencode_proposal=true`` on top. BC on the same file and budget closes the table.
+Variants that change the data (``dataset.size`` hold-outs) or the budget are diagnostics, not
+choices, and are left out.
 """
 from __future__ import annotations
 
