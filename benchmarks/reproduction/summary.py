@@ -9,8 +9,9 @@ seed (final = mean of the last 10 evaluations) and, after the arrow, the mean ch
 both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
 runs), or the ``reencode`` arm (the MuJoCo preset since the fourth session) for variants that ran
 with ``guide.reencode_proposal=true`` on top. BC on the same file and budget closes the table.
-Variants that change the data (``dataset.size`` hold-outs) or the budget are diagnostics, not
-choices, and are left out.
+Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
+are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
+choice 6 and stays.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ SHARED_BUDGET = ["tsidm.steps=3000", "optim.steps=5000", "eval.interval=500", "e
 GRID_BUDGET = ("--steps=5000", "--tsidm-steps=3000", "--eval-interval=500", "--eval-episodes=10")
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
 ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
+DATA_SUBSETS = ("dataset.size=", "dataset.delete_")  # hold-out diagnostics, not choices
 REENCODE_ARM = "reencode"  # choice 7, the MuJoCo preset's reading of Eq. (11) since the fourth session
 
 
@@ -48,7 +50,7 @@ def _variant_arms() -> dict[str, tuple[str, dict]]:
         for path in sorted(folder.glob("*/seed*.json")):
             result = json.loads(path.read_text())
             if (result.get("budget") == SHARED_BUDGET and "variant" in result
-                    and not any(o.startswith("dataset.") for o in result["overrides"])):
+                    and not any(o.startswith(DATA_SUBSETS) for o in result["overrides"])):
                 found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
                 overrides[" ".join(result["overrides"])] = None
         if found:
