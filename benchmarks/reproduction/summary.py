@@ -7,8 +7,9 @@ Rows are the variants under ``results/<variant>/`` that ran with the shared budg
 and the Table 3 ablations of the issue-6 grid; columns are tasks. A cell lists the score of each
 seed (final = mean of the last 10 evaluations) and, after the arrow, the mean change over the seeds
 both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
-runs), or the ``reencode`` arm (the MuJoCo preset since the fourth session) for variants that ran
-with ``guide.reencode_proposal=true`` on top. BC on the same file and budget closes the table.
+runs), the ``reencode`` arm (the MuJoCo preset from the fourth session) for variants that ran
+with ``guide.reencode_proposal=true`` on top, or the ``beta0.01`` arm (the preset since the sixth
+session, re-encoding and beta = 0.01) for variants that ran on top of both. BC on the same file and budget closes the table.
 Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
 choice 6 and stays.
@@ -30,6 +31,7 @@ TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium
 ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
 DATA_SUBSETS = ("dataset.size=", "dataset.delete_")  # hold-out diagnostics, not choices
 REENCODE_ARM = "reencode"  # choice 7, the MuJoCo preset's reading of Eq. (11) since the fourth session
+BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: the MuJoCo preset since the sixth session
 
 
 def _grid_arm(method: str) -> dict[str, dict[int, float]]:
@@ -52,7 +54,10 @@ def _variant_arms() -> dict[str, tuple[str, dict]]:
             if (result.get("budget") == SHARED_BUDGET and "variant" in result
                     and not any(o.startswith(DATA_SUBSETS) for o in result["overrides"])):
                 found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
-                overrides[" ".join(result["overrides"])] = None
+                given = list(result["overrides"])
+                if not any(o.startswith("tsidm.beta=") for o in given) and result.get("beta", 1.0) != 1.0:
+                    given.append(f"tsidm.beta={result['beta']:g} (preset)")  # ran after the preset took beta = 0.01
+                overrides[" ".join(given)] = None
         if found:
             arms[folder.name] = ("` / `".join(overrides), found)
     return arms
@@ -78,6 +83,7 @@ def _means(arm: dict[str, dict[int, float]]) -> str:
 def render() -> str:
     default, bc, variants = _grid_arm("tels"), _grid_arm("bc"), _variant_arms()
     reencode = variants.get(REENCODE_ARM, ("", {}))[1]
+    beta_arm = variants.get(BETA_ARM, ("", {}))[1]
     lines = ["| variant | overrides | against | " + " | ".join(TASKS) + " |", "|---" * (len(TASKS) + 3) + "|"]
 
     def row(name: str, overrides: str, found: dict, base: tuple[str, dict] | None = ("paper", default)) -> None:
@@ -87,7 +93,9 @@ def render() -> str:
     row("paper defaults (issue-6 grid TELS)", "(none)", default, base=None)
     for name, (overrides, found) in variants.items():
         on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
-        row(name, f"`{overrides}`", found, ("reencode", reencode) if on_reencode else ("paper", default))
+        on_beta = name != BETA_ARM and on_reencode and "tsidm.beta=0.01" in overrides
+        base = (BETA_ARM, beta_arm) if on_beta else ("reencode", reencode) if on_reencode else ("paper", default)
+        row(name, f"`{overrides}`", found, base)
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
     row("BC (issue-6 grid)", "", bc)
@@ -95,7 +103,8 @@ def render() -> str:
         "\n\nCells: score per seed (seeds 0, 1, ... unless marked sK) → mean paired change against the arm"
         " named in 'against'.\n"
         f"Means per task ({', '.join(TASKS)}): paper defaults {_means(default)}; "
-        f"re-encode arm (MuJoCo preset) {_means(reencode)}; BC {_means(bc)}.\n")
+        f"re-encode arm (MuJoCo preset to the fifth session) {_means(reencode)}; "
+        f"beta0.01 arm (MuJoCo preset since the sixth) {_means(beta_arm)}; BC {_means(bc)}.\n")
 
 
 def main() -> None:
