@@ -6,9 +6,11 @@
 
 writes benchmarks/reproduction/results/<name>/<task>/seed<k>.json (the run's results.json plus
 the exact command), and skips the run if that file exists. The baseline of a comparison is the
-same budget with no --override (the recipe's defaults, name it "default"); the paper-literal
-arm also needs ``--override guide.reencode_proposal=false``, since the ``mujoco`` preset
-re-encodes the guide's proposal (README, "Deviations from the paper").
+same budget with no --override (the recipe's defaults, name it "default"). The ``mujoco`` preset
+departs from the paper's text twice (README, "Deviations from the paper"): it re-encodes the
+guide's proposal and sets beta = 0.01. So the paper-literal arm needs
+``--override guide.reencode_proposal=false tsidm.beta=1``, and the study's ``reencode`` arm
+(run before the preset took beta = 0.01) ``--override guide.reencode_proposal=true tsidm.beta=1``.
 """
 from __future__ import annotations
 
