@@ -9,7 +9,8 @@ seed (final = mean of the last 10 evaluations) and, after the arrow, the mean ch
 both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
 runs), the ``reencode`` arm (the MuJoCo preset from the fourth session) for variants that ran
 with ``guide.reencode_proposal=true`` on top, or the ``beta0.01`` arm (the preset since the sixth
-session, re-encoding and beta = 0.01) for variants that ran on top of both. BC on the same file and budget closes the table.
+session, re-encoding and beta = 0.01) for variants that ran on top of both. BC on the same file
+and budget closes the table.
 Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
 choice 6 and stays.
@@ -30,7 +31,7 @@ GRID_BUDGET = ("--steps=5000", "--tsidm-steps=3000", "--eval-interval=500", "--e
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
 ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
 DATA_SUBSETS = ("dataset.size=", "dataset.delete_")  # hold-out diagnostics, not choices
-REENCODE_ARM = "reencode"  # choice 7, the MuJoCo preset's reading of Eq. (11) since the fourth session
+REENCODE_ARM = "reencode"  # choice 7 alone: the MuJoCo preset in the fourth and fifth sessions
 BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: the MuJoCo preset since the sixth session
 
 
