@@ -61,7 +61,10 @@ from torchrl_tels.training import (
     write_json,
 )
 
-TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total")
+TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_sum")
+# App. B.5 picks beta by "the lowest TS-IDM training loss": "unweighted" compares the four terms'
+# sum (ell_sum), "weighted" Eq. (7) itself (ell_total), which scales three terms by the candidate.
+SELECTION_KEYS = {"unweighted": "final_sum", "weighted": "final_loss"}
 
 
 def autocast(cfg):
@@ -70,7 +73,7 @@ def autocast(cfg):
 
 
 def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
-    """Stage 1 for one β: trains a fresh TS-IDM and returns it with its final Eq. (7) loss."""
+    """Stage 1 for one β: a fresh TS-IDM, its final losses (Eq. 7 and unweighted) and history."""
     obs_dim, act_dim = data["observation"].shape[-1], data["action"].shape[-1]
     t = cfg.tsidm
     tsidm = TSIDM(
@@ -93,7 +96,7 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
     buffer = make_offline_replay_buffer(data, t.batch_size)
     total_steps = t.steps or t.epochs * math.ceil(len(data) / t.batch_size)
 
-    start, tail = 0, []  # tail: Eq. (7) over the last 10% of steps, B.5 compares final training losses
+    start, tail = 0, []  # tail: (Eq. 7, unweighted sum) over the last 10% of steps, B.5 compares final losses
     history = {key: [] for key in TSIDM_TERMS}
     if state.get("stage") == "tsidm" and state.get("candidate") == candidate and state.get("step", 0) > 0:
         loss_module.load_state_dict(state["loss"])
@@ -111,7 +114,7 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
         sum_losses(losses).backward()
         optim.step()
         if step >= 0.9 * total_steps:
-            tail.append(losses["ell_total"].item())
+            tail.append((losses["ell_total"].item(), losses["ell_sum"].item()))
         if (step + 1) % cfg.logger.log_interval == 0:
             scalars = {f"tsidm/{k}": losses[k].item() for k in TSIDM_TERMS if k in losses.keys()}
             for key, value in scalars.items():
@@ -125,8 +128,9 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
                 "rng": get_rng_state(), "history": history, "tail": tail,
             })
     check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total_steps}")
-    final_loss = sum(tail) / len(tail) if tail else float("nan")
-    return tsidm.eval(), final_loss, history
+    final = {key: sum(pair[i] for pair in tail) / len(tail) if tail else float("nan")
+             for i, key in enumerate(("final_loss", "final_sum"))}
+    return tsidm.eval(), final, history
 
 
 @hydra.main(config_path="config", config_name="config", version_base="1.3")
@@ -217,10 +221,12 @@ def train(cfg: DictConfig) -> dict:
             if candidate < len(beta_results):
                 continue  # finished before an interruption; its model is in best_tsidm.pt
             torch.manual_seed(cfg.seed + candidate)
-            model, final_loss, history = fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger)
-            beta_results.append({"beta": beta, "final_loss": final_loss})
-            print(f"TS-IDM beta={beta:g}: final training loss (Eq. 7) {final_loss:.5f}")
-            if min(r["final_loss"] for r in beta_results) == final_loss:
+            model, final, history = fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger)
+            beta_results.append({"beta": beta, **final})
+            print(f"TS-IDM beta={beta:g}: final training loss {final['final_loss']:.5f} (Eq. 7), "
+                  f"{final['final_sum']:.5f} (unweighted)")
+            key = SELECTION_KEYS[cfg.tsidm.beta_selection]
+            if min(r[key] for r in beta_results) == final[key]:
                 best = (model, history, beta)
                 model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
             wall["tsidm_s"] = time.perf_counter() - start_time

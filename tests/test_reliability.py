@@ -257,6 +257,7 @@ HYPERPARAMETER_CASES = [
     ("dataset.delete_ratio=1.5", "dataset.delete_ratio must lie in [0, 1], got 1.5."),
     ("dataset.delete_xy=[0]", "dataset.delete_xy must be two observation column indices >= 0"),
     ("guide.reencode_proposal=3", "guide.reencode_proposal must be true or false, got 3."),
+    ("tsidm.beta_selection=lowest", "tsidm.beta_selection must be one of ('unweighted', 'weighted'), got 'lowest'."),
 ]
 
 

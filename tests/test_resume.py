@@ -198,8 +198,14 @@ def test_same_seed_same_results_and_wandb_failure_is_harmless(reference, tmp_pat
     assert proc.stderr.count("wandb is off for this run") == 1, proc.stderr[-2000:]
     assert_same_run(tmp_path / "run", reference)
     tsidm_terms = [name for name in csv_log(reference) if "/tsidm/ell_" in name]
-    assert len(tsidm_terms) == 5 and all(len(csv_log(reference)[name]) == 20 for name in tsidm_terms)
+    assert len(tsidm_terms) == 6 and all(len(csv_log(reference)[name]) == 20 for name in tsidm_terms)
     assert len(outcome(reference)["evaluations"]) == 4
+    # beta=auto compares the unweighted sum (tsidm.beta_selection's default); at beta=1 it is Eq. (7).
+    by_beta = {r["beta"]: r for r in outcome(reference)["beta_results"]}
+    assert sorted(by_beta) == [0.1, 1.0]
+    assert by_beta[1.0]["final_sum"] == pytest.approx(by_beta[1.0]["final_loss"], rel=1e-6)
+    assert by_beta[0.1]["final_loss"] < by_beta[0.1]["final_sum"]
+    assert outcome(reference)["beta"] == min(by_beta, key=lambda b: by_beta[b]["final_sum"])
 
 
 def test_sigkill_in_stage2_then_resume(reference, tmp_path):

@@ -97,6 +97,9 @@ def test_loss_terms_match_explicit_jacobians(beta):
     expected = ref["rec"] + beta * (ref["dyn"] + ref["ode"] + ref["tsym"])
     torch.testing.assert_close(total, expected, rtol=0, atol=1e-8)
     torch.testing.assert_close(out["ell_total"], expected, rtol=0, atol=1e-8)
+    # What beta candidates are compared on: the same four terms, without beta.
+    unweighted = ref["rec"] + ref["dyn"] + ref["ode"] + ref["tsym"]
+    torch.testing.assert_close(out["ell_sum"], unweighted, rtol=0, atol=1e-8)
 
 
 def test_jvp_terms_are_differentiable_like_explicit_jacobians():

@@ -120,6 +120,7 @@ def validate_config(cfg) -> None:
     choices = {
         "tsidm.ablation": ("ae", "dyn", "ode", "full"),
         "tsidm.dim_reduction": ("sum", "mean"),
+        "tsidm.beta_selection": ("unweighted", "weighted"),
         "guide.mode": ("deterministic", "stochastic"),
         "dataset.subset": SUBSET_MODES,
         "logger.wandb_mode": ("online", "offline", "disabled"),

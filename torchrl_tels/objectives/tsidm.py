@@ -45,8 +45,12 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
     has weight 1, Table 10) and ``loss_dyn``, ``loss_ode``, ``loss_tsym``
     already multiplied by the one shared :math:`\beta` (Appendix B.5), so that
     the sum of the ``loss_*`` entries is exactly Eq. (7). Unweighted, detached
-    copies ride along as ``ell_rec``, ``ell_dyn``, ``ell_ode``, ``ell_tsym``
-    and ``ell_total`` (= Eq. 7, the quantity Appendix B.5 selects β by).
+    copies ride along as ``ell_rec``, ``ell_dyn``, ``ell_ode``, ``ell_tsym``,
+    ``ell_total`` (= Eq. 7) and ``ell_sum`` (the terms summed without β).
+    Appendix B.5 picks β as the one "with the lowest TS-IDM training loss";
+    ``ell_total`` scales three of its terms by the candidate β itself and so
+    leans toward the smallest one, while ``ell_sum`` compares candidates on one
+    objective (``benchmarks/reproduction/LOG.md``, "the β rule read two ways").
 
     Args:
         tsidm: the :class:`~torchrl_tels.modules.TSIDM` to train.
@@ -138,7 +142,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         level = TSIDM_ABLATIONS.index(self.ablation)
         terms = ["loss_state_rec", "loss_action_rec", "loss_dyn", "loss_ode", "loss_tsym"]
         ells = ["ell_rec", "ell_dyn", "ell_ode", "ell_tsym"]
-        return terms[: 2 + level] + ells[: 1 + level] + ["ell_total"]
+        return terms[: 2 + level] + ells[: 1 + level] + ["ell_total", "ell_sum"]
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         self._set_in_keys()
@@ -211,13 +215,15 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         }
         ell_rec = (out["loss_state_rec"] + out["loss_action_rec"]).detach()
         ells = {"ell_rec": ell_rec}
-        ell_total = ell_rec
+        ell_total = ell_sum = ell_rec
         for name, per_sample in regularizers.items():
             value = self._reduce(per_sample)
             out[f"loss_{name}"] = self.beta * value
             ells[f"ell_{name}"] = value.detach()
             ell_total = ell_total + self.beta * value.detach()
+            ell_sum = ell_sum + value.detach()
         # Eq. (7)
         ells["ell_total"] = ell_total
+        ells["ell_sum"] = ell_sum
         out.update(ells)
         return TensorDict(out, batch_size=[])
