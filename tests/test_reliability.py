@@ -188,6 +188,26 @@ def test_subset_larger_than_dataset(recipe, capsys, tmp_path):
 
 
 # ------------------------------------------------------------- bad checkpoints
+def test_checkpoint_older_than_an_option_resumes_only_where_it_behaved_the_same():
+    """A checkpoint written before tsidm.beta_selection existed: with a fixed beta the option has
+    no effect, so the run continues; with beta=auto it selected by Eq. (7) itself ("weighted"),
+    so it continues only under that reading."""
+    def older(*overrides):
+        saved = training_config(compose_cfg("run_dir=x", *overrides))
+        del saved["tsidm"]["beta_selection"]
+        return saved
+
+    current = training_config(compose_cfg("run_dir=x"))
+    config_module.check_same_run(older(), current, "state.pt")
+    auto = training_config(compose_cfg("run_dir=x", "tsidm.beta=auto"))
+    with pytest.raises(ConfigError, match=r"tsidm.beta_selection: 'weighted' -> 'unweighted'"):
+        config_module.check_same_run(older("tsidm.beta=auto"), auto, "state.pt")
+    weighted = training_config(compose_cfg("run_dir=x", "tsidm.beta=auto", "tsidm.beta_selection=weighted"))
+    config_module.check_same_run(older("tsidm.beta=auto"), weighted, "state.pt")
+    with pytest.raises(ConfigError, match=r"tsidm.beta: 1.0 -> 0.5"):  # other keys are still compared
+        config_module.check_same_run(older(), training_config(compose_cfg("run_dir=x", "tsidm.beta=0.5")), "state.pt")
+
+
 def test_tsidm_checkpoint_made_for_another_env(recipe, capsys, tmp_path):
     small_tsidm(17, 6).save(tmp_path / "walker_tsidm.pt")  # Walker2d sizes; the run is Hopper (11/3)
     message = expect_error(recipe, capsys, tmp_path / "run", f"tsidm.checkpoint={tmp_path / 'walker_tsidm.pt'}")

@@ -25,6 +25,14 @@ __all__ = [
 #: continuation: they decide where and how a run is logged, not what it computes.
 RESUMABLE_KEYS = ("run_dir", "resume", "threads", "logger", "checkpoint")
 
+#: Options added after checkpoints were first written, as (section, key): (the value that
+#: reproduces how a checkpoint without the option behaved, when the option matters at all).
+#: An older checkpoint is compared as if it held that value, or the current one where the
+#: option has no effect, so runs made before an option existed still resume.
+ADDED_OPTIONS = {
+    ("tsidm", "beta_selection"): ("weighted", lambda cfg: cfg.get("tsidm", {}).get("beta") == "auto"),
+}
+
 
 class ConfigError(ValueError):
     """A config value is out of range or of the wrong kind."""
@@ -176,6 +184,18 @@ def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
     return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
 
 
+def _with_added_options(saved: Mapping, current: Mapping) -> Mapping:
+    """``saved`` with every :data:`ADDED_OPTIONS` entry it lacks filled in (see there)."""
+    filled = {key: dict(value) if isinstance(value, Mapping) else value for key, value in saved.items()}
+    for (section, key), (legacy, matters) in ADDED_OPTIONS.items():
+        if isinstance(filled.get(section), dict) and key not in filled[section]:
+            if matters(saved):
+                filled[section][key] = legacy
+            elif key in current.get(section, {}):
+                filled[section][key] = current[section][key]
+    return filled
+
+
 def check_same_run(saved: Mapping | None, current: Mapping, where: str) -> None:
     """Raises :class:`ConfigError` if a checkpoint's :func:`training_config` differs from ``current``.
 
@@ -185,6 +205,7 @@ def check_same_run(saved: Mapping | None, current: Mapping, where: str) -> None:
     """
     if saved is None:
         return
+    saved = _with_added_options(saved, current)
     differences = _differences(saved, current)
     if differences:
         shown = "; ".join(differences[:4]) + (f"; and {len(differences) - 4} more" if len(differences) > 4 else "")
