@@ -26,14 +26,13 @@ import argparse
 import csv
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
+from run_choice import REPO, run_recipe  # the same directory: Python puts it first on sys.path
+
 from torchrl_tels.training import write_json
 
-REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "beta_rule"
 TSIDM_STEPS = 3000
@@ -70,11 +69,9 @@ def record(task: str, seed: int, beta: float, threads: int) -> None:
     command = None
     if not (scalars / "ell_total.csv").exists() or not (run_dir / "results.json").exists():
         # A one-step stage 2 with one episode: the recipe only needs to finish; nothing of it is read.
-        command = [sys.executable, str(REPO / "recipes" / "tels_offline.py"), f"dataset.name={task}",
-                   f"seed={seed}", f"run_dir={run_dir}", "resume=true", f"threads={threads}",
-                   "logger.wandb_mode=disabled", f"tsidm.steps={TSIDM_STEPS}", f"tsidm.beta={beta:g}",
-                   "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"]
-        subprocess.run(command, check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
+        command = run_recipe(task, seed, run_dir, threads, [
+            f"tsidm.steps={TSIDM_STEPS}", f"tsidm.beta={beta:g}",
+            "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"])
     recorded_beta = json.loads((run_dir / "results.json").read_text())["beta"]
     if abs(recorded_beta - beta) > 1e-12:
         raise ValueError(f"{run_dir} trained stage 1 with beta={recorded_beta}, not {beta}")

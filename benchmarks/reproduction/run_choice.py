@@ -27,6 +27,15 @@ from torchrl_tels.training import write_json
 REPO = Path(__file__).resolve().parents[2]
 
 
+def run_recipe(task: str, seed: int, run_dir: Path, threads: int, overrides: list[str]) -> list[str]:
+    """Runs (or resumes) the recipe into ``run_dir`` with wandb off; returns the command it ran."""
+    cmd = [sys.executable, str(REPO / "recipes" / "tels_offline.py"), f"dataset.name={task}",
+           f"seed={seed}", f"run_dir={run_dir}", "resume=true", f"threads={threads}",
+           "logger.wandb_mode=disabled", *overrides]
+    subprocess.run(cmd, check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
+    return cmd
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--name", required=True, help="what this variant tests, e.g. alpha0.1")
@@ -42,11 +51,8 @@ def main():
         print(f"{out} exists; skipping")
         return
     run_dir = REPO / "runs" / "reproduction" / args.name / args.task / f"seed{args.seed}"
-    cmd = [sys.executable, str(REPO / "recipes" / "tels_offline.py"), f"dataset.name={args.task}",
-           f"seed={args.seed}", f"run_dir={run_dir}", "resume=true", f"threads={args.threads}",
-           "logger.wandb_mode=disabled", *args.budget, *args.override]
     start = time.time()
-    subprocess.run(cmd, check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": str(args.threads)})
+    cmd = run_recipe(args.task, args.seed, run_dir, args.threads, [*args.budget, *args.override])
     results = json.loads((run_dir / "results.json").read_text())
     results.update(variant=args.name, overrides=args.override, budget=args.budget, command=" ".join(cmd),
                    date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, cpu_count=os.cpu_count())
