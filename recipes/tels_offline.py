@@ -31,7 +31,6 @@ from torchrl_tels.config import (
     check_precision_supported,
     check_same_run,
     check_writable_folder,
-    ConfigError,
     training_config,
     validate_config,
 )
@@ -113,7 +112,7 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
         optim.zero_grad()
         sum_losses(losses).backward()
         optim.step()
-        if step >= 0.9 * total_steps:
+        if step >= int(0.9 * total_steps):  # int(): runs under 10 steps still keep their last step
             tail.append((losses["ell_total"].item(), losses["ell_sum"].item()))
         if (step + 1) % cfg.logger.log_interval == 0:
             scalars = {f"tsidm/{k}": losses[k].item() for k in TSIDM_TERMS if k in losses.keys()}
@@ -128,8 +127,7 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
                 "rng": get_rng_state(), "history": history, "tail": tail,
             })
     check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total_steps}")
-    final = {key: sum(pair[i] for pair in tail) / len(tail) if tail else float("nan")
-             for i, key in enumerate(("final_loss", "final_sum"))}
+    final = {key: sum(pair[i] for pair in tail) / len(tail) for i, key in enumerate(("final_loss", "final_sum"))}
     return tsidm.eval(), final, history
 
 
@@ -373,13 +371,4 @@ def train(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    # hydra creates run_dir (its output folder) before main() runs: report an unwritable one as one line too
-    for arg in sys.argv[1:]:
-        key, _, value = arg.lstrip("+").partition("=")
-        if key == "run_dir" and value and "$" not in value:
-            try:
-                check_writable_folder(value, create=False)
-            except ConfigError as err:
-                print(f"error: {err}", file=sys.stderr)
-                sys.exit(2)
     main()

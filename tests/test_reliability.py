@@ -12,6 +12,8 @@ Kills, resumption, determinism and NaN handling are in ``test_resume.py``.
 from __future__ import annotations
 
 import importlib.util
+import json
+import math
 import os
 import pickle
 import signal
@@ -302,20 +304,39 @@ def test_bf16_refused_on_a_cpu_without_native_bf16(recipe, capsys, tmp_path, mon
 
 
 # ------------------------------------------------------ the real command line
-def run_cli(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
+def run_cli(tmp_path: Path, *overrides: str, cwd: Path = REPO_ROOT) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
         [sys.executable, str(RECIPE), "preset=quick", "threads=1", *SMALL, *overrides],
-        cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=120,
+        cwd=cwd, env=env, capture_output=True, text=True, timeout=120,
     )
 
 
 def test_cli_prints_one_error_line(tmp_path):
-    proc = run_cli(tmp_path, f"run_dir={tmp_path / 'run'}", "value.expectile=1.5")
+    launch = tmp_path / "launch"
+    launch.mkdir()
+    proc = run_cli(tmp_path, f"run_dir={tmp_path / 'run'}", "value.expectile=1.5", cwd=launch)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines() == ["error: value.expectile must lie in (0, 1), got 1.5."]
+    # hydra used to create run_dir, .hydra/ and a job log before the config was validated
+    assert [p.name for p in tmp_path.iterdir()] == ["launch"]
+    assert list(launch.iterdir()) == []
+
+
+def test_cli_run_writes_only_into_run_dir(tmp_path):
+    launch = tmp_path / "launch"
+    launch.mkdir()
+    proc = run_cli(tmp_path, f"run_dir={tmp_path / 'run'}", cwd=launch)
+    assert proc.returncode == 0, proc.stderr
+    assert list(launch.iterdir()) == []
+    written = {p.name for p in (tmp_path / "run").iterdir()}
+    assert {"config.yaml", "results.json", "tsidm.pt", "policy.pt", "eval_scores.png"} <= written
+    assert not written & {".hydra", "tels_offline.log"}
+    # two stage-1 steps still leave a final loss to pick beta by (it was nan under 10 steps)
+    (result,) = json.loads((tmp_path / "run" / "results.json").read_text())["beta_results"]
+    assert math.isfinite(result["final_loss"]) and math.isfinite(result["final_sum"])
 
 
 def test_cli_unwritable_output_folder(tmp_path):
