@@ -215,21 +215,10 @@ def check_same_run(saved: Mapping | None, current: Mapping, where: str) -> None:
         )
 
 
-def check_writable_folder(folder: str | os.PathLike, name: str = "run_dir", *, create: bool = True) -> Path:
-    """Checks a file can be written in ``folder`` (created if ``create``); :class:`ConfigError` if not.
-
-    With ``create=False`` nothing is made: the nearest existing ancestor must
-    be a folder this process may write into.
-    """
+def check_writable_folder(folder: str | os.PathLike, name: str = "run_dir") -> Path:
+    """Creates ``folder`` and checks a file can be written in it; :class:`ConfigError` if not."""
     folder = Path(folder)
     try:
-        if not create:
-            ancestor = next(p for p in (folder, *folder.parents) if p.exists())
-            if not ancestor.is_dir():
-                raise NotADirectoryError(20, "Not a directory")
-            if not os.access(ancestor, os.W_OK | os.X_OK):
-                raise PermissionError(13, "Permission denied")
-            return folder
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=folder):
             pass
