@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import statistics
-from pathlib import Path
 
 from summary import BETA_ARM, GRID, GRID_BUDGET, HERE, SHARED_BUDGET, TASKS
 
