@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import statistics
 
-from summary import BETA_ARM, GRID, GRID_BUDGET, HERE, SHARED_BUDGET, TASKS
+from summary import BETA_ARM, GRID, HERE, SHARED_BUDGET, TASKS, on_grid_budget
 
 BASELINES = ("bc", "td3bc", "iql")
 READINGS = {
@@ -28,7 +28,7 @@ READINGS = {
 def curves(method: str, task: str) -> dict[int, list[float]]:
     """{seed: the scores of its evaluations in order} of ``method``'s runs at the shared budget."""
     if method in BASELINES:
-        paths, wanted = (GRID / method / task).glob("seed*.json"), lambda r: all(f in r["command"] for f in GRID_BUDGET)
+        paths, wanted = (GRID / method / task).glob("seed*.json"), on_grid_budget
     else:
         paths, wanted = (HERE / "results" / method / task).glob("seed*.json"), lambda r: r["budget"] == SHARED_BUDGET
     found = {}

@@ -35,12 +35,17 @@ REENCODE_ARM = "reencode"  # choice 7 alone: the MuJoCo preset in the fourth and
 BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: the MuJoCo preset since the sixth session
 
 
+def on_grid_budget(result: dict) -> bool:
+    """Whether an issue-6 grid result ran at the study's shared budget."""
+    return all(flag in result.get("command", "") for flag in GRID_BUDGET)
+
+
 def _grid_arm(method: str) -> dict[str, dict[int, float]]:
     """{task: {seed: final score}} of the issue-6 grid's runs of ``method`` at the shared budget."""
     found: dict[str, dict[int, float]] = {}
     for path in sorted((GRID / method).glob("*/seed*.json")):
         result = json.loads(path.read_text())
-        if all(flag in result.get("command", "") for flag in GRID_BUDGET):
+        if on_grid_budget(result):
             found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
     return found
 
