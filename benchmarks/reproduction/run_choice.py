@@ -36,6 +36,18 @@ def run_recipe(task: str, seed: int, run_dir: Path, threads: int, overrides: lis
     return cmd
 
 
+def cpu_description() -> str:
+    """CPU model and widest AVX level: runs on different CPUs differ in their numerics, so a
+    same-seed comparison is only exact on one kind of machine."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return "unknown"
+    model = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")),
+                 "unknown")
+    return f"{model}, {'AVX-512' if ' avx512f' in info else 'AVX2' if ' avx2' in info else 'no AVX2'}"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--name", required=True, help="what this variant tests, e.g. alpha0.1")
@@ -55,7 +67,8 @@ def main():
     cmd = run_recipe(args.task, args.seed, run_dir, args.threads, [*args.budget, *args.override])
     results = json.loads((run_dir / "results.json").read_text())
     results.update(variant=args.name, overrides=args.override, budget=args.budget, command=" ".join(cmd),
-                   date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, cpu_count=os.cpu_count())
+                   date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, cpu_count=os.cpu_count(),
+                   cpu=cpu_description())
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out, results)
     print(f"{args.name} {args.task} seed {args.seed}: {results['final_normalized_score_mean']:.1f}")
