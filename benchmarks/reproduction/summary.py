@@ -33,6 +33,9 @@ ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 g
 DATA_SUBSETS = ("dataset.size=", "dataset.delete_")  # hold-out diagnostics, not choices
 REENCODE_ARM = "reencode"  # choice 7 alone: the MuJoCo preset in the fourth and fifth sessions
 BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: the MuJoCo preset since the sixth session
+# The preset again, on the AVX-512 machine of the ninth session: same-seed runs on another CPU
+# differ in their numerics, so that session's variants are compared against this arm.
+AVX512_PRESET_ARM = "preset_avx512"
 
 
 def on_grid_budget(result: dict) -> bool:
@@ -50,11 +53,13 @@ def _grid_arm(method: str) -> dict[str, dict[int, float]]:
     return found
 
 
-def _variant_arms() -> dict[str, tuple[str, dict]]:
+def _variant_arms() -> dict[str, tuple[str, dict, set[str]]]:
+    """{variant: (its overrides, {task: {seed: final score}}, the CPUs its runs recorded)}."""
     arms = {}
     for folder in sorted(p for p in (HERE / "results").iterdir() if p.is_dir()):
         found: dict[str, dict[int, float]] = {}
         overrides: dict[str, None] = {}  # ordered set: sizes that follow the task differ per task
+        cpus: set[str] = set()
         for path in sorted(folder.glob("*/seed*.json")):
             result = json.loads(path.read_text())
             if (result.get("budget") == SHARED_BUDGET and "variant" in result
@@ -64,8 +69,9 @@ def _variant_arms() -> dict[str, tuple[str, dict]]:
                 if not any(o.startswith("tsidm.beta=") for o in given) and result.get("beta", 1.0) != 1.0:
                     given.append(f"tsidm.beta={result['beta']:g} (preset)")  # ran after the preset took beta = 0.01
                 overrides[" ".join(given)] = None
+                cpus.add(result.get("cpu", "unknown"))
         if found:
-            arms[folder.name] = ("` / `".join(overrides), found)
+            arms[folder.name] = ("` / `".join(overrides), found, cpus)
     return arms
 
 
@@ -88,8 +94,9 @@ def _means(arm: dict[str, dict[int, float]]) -> str:
 
 def render() -> str:
     default, bc, variants = _grid_arm("tels"), _grid_arm("bc"), _variant_arms()
-    reencode = variants.get(REENCODE_ARM, ("", {}))[1]
-    beta_arm = variants.get(BETA_ARM, ("", {}))[1]
+    reencode = variants.get(REENCODE_ARM, ("", {}, set()))[1]
+    beta_arm = variants.get(BETA_ARM, ("", {}, set()))[1]
+    avx512_arm = variants.get(AVX512_PRESET_ARM, ("", {}, set()))[1]
     lines = ["| variant | overrides | against | " + " | ".join(TASKS) + " |", "|---" * (len(TASKS) + 3) + "|"]
 
     def row(name: str, overrides: str, found: dict, base: tuple[str, dict] | None = ("paper", default)) -> None:
@@ -97,10 +104,13 @@ def render() -> str:
         lines.append(f"| {name} | {overrides} | {base[0] if base else ''} | " + " | ".join(cells) + " |")
 
     row("paper defaults (issue-6 grid TELS)", "(none)", default, base=None)
-    for name, (overrides, found) in variants.items():
+    for name, (overrides, found, cpus) in variants.items():
         on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
         on_beta = name != BETA_ARM and on_reencode and "tsidm.beta=0.01" in overrides
-        base = (BETA_ARM, beta_arm) if on_beta else ("reencode", reencode) if on_reencode else ("paper", default)
+        on_avx512 = (name != AVX512_PRESET_ARM and on_reencode and bool(avx512_arm)
+                     and all("AVX-512" in cpu for cpu in cpus))
+        base = ((AVX512_PRESET_ARM, avx512_arm) if on_avx512 else (BETA_ARM, beta_arm) if on_beta
+                else ("reencode", reencode) if on_reencode else ("paper", default))
         row(name, f"`{overrides}`", found, base)
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
@@ -110,7 +120,8 @@ def render() -> str:
         " named in 'against'.\n"
         f"Means per task ({', '.join(TASKS)}): paper defaults {_means(default)}; "
         f"re-encode arm (MuJoCo preset to the fifth session) {_means(reencode)}; "
-        f"beta0.01 arm (MuJoCo preset since the sixth) {_means(beta_arm)}; BC {_means(bc)}.\n")
+        f"beta0.01 arm (MuJoCo preset since the sixth) {_means(beta_arm)}; "
+        f"the preset on the AVX-512 machine {_means(avx512_arm)}; BC {_means(bc)}.\n")
 
 
 def main() -> None:
