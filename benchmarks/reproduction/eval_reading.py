@@ -1,16 +1,20 @@
 """Choice 6's evaluation protocol: the same runs' scores read four ways.
 
     python benchmarks/reproduction/eval_reading.py
+    python benchmarks/reproduction/eval_reading.py --arms preset_avx512 alpha1 --against preset_avx512
 
 The study scores a run by the mean of all ten evaluations (every 500 of its 5k policy steps),
 which counts the half-trained policies of the first steps as much as the last. The paper does
 not say how Table 1 was read. This reads the finished runs of the MuJoCo preset (the
 ``beta0.01`` arm) and the issue-6 grid's baselines at the same budget four ways: the study's mean
 of all ten, the mean of the last four (3.5k-5k steps), the last evaluation alone, and the best
-one (an upper bound no protocol should use). Nothing is trained.
+one (an upper bound no protocol should use). Nothing is trained. ``--arms`` reads other
+variants of the study the same way, and ``--against`` names the arm the bracketed paired change
+is taken against (BC unless given).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import statistics
 
@@ -40,22 +44,30 @@ def curves(method: str, task: str) -> dict[int, list[float]]:
 
 
 def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--arms", nargs="+", default=[BETA_ARM, *BASELINES], help="variants or baselines to read")
+    parser.add_argument("--against", default="bc", help="the arm of the bracketed paired change")
+    args = parser.parse_args()
     print("| task | method | seeds | " + " | ".join(READINGS) + " |")
     print("|---|---|---|" + "---|" * len(READINGS))
     for task in TASKS:
-        bc = curves("bc", task)
-        for method in (BETA_ARM, *BASELINES):
+        base = curves(args.against, task)
+        for method in args.arms:
             runs = curves(method, task)
+            if not runs:
+                continue
             cells = []
             for read in READINGS.values():
                 text = f"{statistics.mean(read(c) for c in runs.values()):.1f}"
-                paired = [read(runs[s]) - read(bc[s]) for s in runs if s in bc]
-                if method != "bc" and paired:
+                paired = [read(runs[s]) - read(base[s]) for s in runs if s in base]
+                if method != args.against and paired:
                     text += f" ({statistics.mean(paired):+.1f})"
                 cells.append(text)
-            name = "TELS, MuJoCo preset" if method == BETA_ARM else method.upper()
+            name = ("TELS, MuJoCo preset" if method == BETA_ARM
+                    else method.upper() if method in BASELINES else method)
             print(f"| {task} | {name} | {len(runs)} | " + " | ".join(cells) + " |")
-    print("\nIn brackets: the mean change against BC on the same seeds under the same reading.")
+    against = args.against.upper() if args.against in BASELINES else args.against
+    print(f"\nIn brackets: the mean change against {against} on the same seeds under the same reading.")
 
 
 if __name__ == "__main__":
