@@ -9,8 +9,9 @@ seed (final = mean of the last 10 evaluations) and, after the arrow, the mean ch
 both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
 runs), the ``reencode`` arm (the MuJoCo preset from the fourth session) for variants that ran
 with ``guide.reencode_proposal=true`` on top, or the ``beta0.01`` arm (the preset since the sixth
-session, re-encoding and beta = 0.01) for variants that ran on top of both. BC on the same file
-and budget closes the table.
+session, re-encoding and beta = 0.01) for variants that ran on top of both; variants whose runs
+all recorded an AVX-512 CPU are paired against ``preset_avx512``, the preset rerun on that machine.
+BC on the same file and budget closes the table.
 Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
 choice 6 and stays.
