@@ -9,8 +9,8 @@ seed (final = mean of the last 10 evaluations) and, after the arrow, the mean ch
 both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
 runs), the ``reencode`` arm (the MuJoCo preset from the fourth session) for variants that ran
 with ``guide.reencode_proposal=true`` on top, or the ``beta0.01`` arm (the preset since the sixth
-session, re-encoding and beta = 0.01) for variants that ran on top of both; variants whose runs
-all recorded an AVX-512 CPU are paired against ``preset_avx512``, the preset rerun on that machine.
+session, re-encoding and beta = 0.01) for variants that ran on top of both; on a task where a variant's runs
+all recorded an AVX-512 CPU, it is paired against ``preset_avx512``, the preset rerun on that machine.
 BC on the same file and budget closes the table.
 Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
@@ -54,13 +54,13 @@ def _grid_arm(method: str) -> dict[str, dict[int, float]]:
     return found
 
 
-def _variant_arms() -> dict[str, tuple[str, dict, set[str]]]:
-    """{variant: (its overrides, {task: {seed: final score}}, the CPUs its runs recorded)}."""
+def _variant_arms() -> dict[str, tuple[str, dict, dict[str, set[str]]]]:
+    """{variant: (its overrides, {task: {seed: final score}}, {task: the CPUs its runs recorded})}."""
     arms = {}
     for folder in sorted(p for p in (HERE / "results").iterdir() if p.is_dir()):
         found: dict[str, dict[int, float]] = {}
         overrides: dict[str, None] = {}  # ordered set: sizes that follow the task differ per task
-        cpus: set[str] = set()
+        cpus: dict[str, set[str]] = {}
         for path in sorted(folder.glob("*/seed*.json")):
             result = json.loads(path.read_text())
             if (result.get("budget") == SHARED_BUDGET and "variant" in result
@@ -70,7 +70,7 @@ def _variant_arms() -> dict[str, tuple[str, dict, set[str]]]:
                 if not any(o.startswith("tsidm.beta=") for o in given) and result.get("beta", 1.0) != 1.0:
                     given.append(f"tsidm.beta={result['beta']:g} (preset)")  # ran after the preset took beta = 0.01
                 overrides[" ".join(given)] = None
-                cpus.add(result.get("cpu", "unknown"))
+                cpus.setdefault(path.parent.name, set()).add(result.get("cpu", "unknown"))
         if found:
             arms[folder.name] = ("` / `".join(overrides), found, cpus)
     return arms
@@ -95,24 +95,34 @@ def _means(arm: dict[str, dict[int, float]]) -> str:
 
 def render() -> str:
     default, bc, variants = _grid_arm("tels"), _grid_arm("bc"), _variant_arms()
-    reencode = variants.get(REENCODE_ARM, ("", {}, set()))[1]
-    beta_arm = variants.get(BETA_ARM, ("", {}, set()))[1]
-    avx512_arm = variants.get(AVX512_PRESET_ARM, ("", {}, set()))[1]
+    reencode = variants.get(REENCODE_ARM, ("", {}, {}))[1]
+    beta_arm = variants.get(BETA_ARM, ("", {}, {}))[1]
+    avx512_arm = variants.get(AVX512_PRESET_ARM, ("", {}, {}))[1]
     lines = ["| variant | overrides | against | " + " | ".join(TASKS) + " |", "|---" * (len(TASKS) + 3) + "|"]
 
-    def row(name: str, overrides: str, found: dict, base: tuple[str, dict] | None = ("paper", default)) -> None:
-        cells = [_cell(found.get(t, {}), base[1].get(t, {}) if base else None) for t in TASKS]
-        lines.append(f"| {name} | {overrides} | {base[0] if base else ''} | " + " | ".join(cells) + " |")
+    def row(name: str, overrides: str, found: dict, base: tuple[str, dict] | None = ("paper", default),
+            per_task: dict[str, tuple[str, dict]] | None = None) -> None:
+        bases = {t: (per_task or {}).get(t, base) for t in TASKS}
+        cells = [_cell(found.get(t, {}), bases[t][1].get(t, {}) if bases[t] else None) for t in TASKS]
+        groups: dict[str, list[str]] = {}
+        for t in TASKS:
+            if bases[t] and t in found:
+                groups.setdefault(bases[t][0], []).append(t.removesuffix("-v2-10k"))
+        against = (next(iter(groups)) if len(groups) == 1 else base[0] if not groups and base else
+                   " / ".join(f"{arm} ({', '.join(tasks)})" for arm, tasks in groups.items()) if groups else "")
+        lines.append(f"| {name} | {overrides} | {against} | " + " | ".join(cells) + " |")
 
     row("paper defaults (issue-6 grid TELS)", "(none)", default, base=None)
     for name, (overrides, found, cpus) in variants.items():
         on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
         on_beta = name != BETA_ARM and on_reencode and "tsidm.beta=0.01" in overrides
-        on_avx512 = (name != AVX512_PRESET_ARM and on_reencode and bool(avx512_arm)
-                     and all("AVX-512" in cpu for cpu in cpus))
-        base = ((AVX512_PRESET_ARM, avx512_arm) if on_avx512 else (BETA_ARM, beta_arm) if on_beta
-                else ("reencode", reencode) if on_reencode else ("paper", default))
-        row(name, f"`{overrides}`", found, base)
+        base = ((BETA_ARM, beta_arm) if on_beta else ("reencode", reencode) if on_reencode else ("paper", default))
+        # Same-seed pairs are exact only on one kind of CPU: a task whose runs all recorded an
+        # AVX-512 CPU is paired against the preset rerun on that machine.
+        per_task = {t: (AVX512_PRESET_ARM, avx512_arm) for t, seen in cpus.items()
+                    if name != AVX512_PRESET_ARM and on_reencode and avx512_arm
+                    and all("AVX-512" in cpu for cpu in seen)}
+        row(name, f"`{overrides}`", found, base, per_task)
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
     row("BC (issue-6 grid)", "", bc)
