@@ -111,8 +111,10 @@ def render() -> str:
         for t in TASKS:
             if bases[t] and t in found:
                 groups.setdefault(bases[t][0], []).append(t.removesuffix("-v2-10k"))
-        against = (next(iter(groups)) if len(groups) == 1 else base[0] if not groups and base else
-                   " / ".join(f"{arm} ({', '.join(tasks)})" for arm, tasks in groups.items()) if groups else "")
+        if len(groups) > 1:
+            against = " / ".join(f"{arm} ({', '.join(tasks)})" for arm, tasks in groups.items())
+        else:
+            against = next(iter(groups), base[0] if base else "")
         lines.append(f"| {name} | {overrides} | {against} | " + " | ".join(cells) + " |")
 
     row("paper defaults (issue-6 grid TELS)", "(none)", default, base=None)
