@@ -13,6 +13,9 @@ session, re-encoding and beta = 0.01) for variants that ran on top of both; on a
 all recorded the ninth session's Intel Xeon, it is paired against ``preset_avx512``, the preset rerun on
 that machine. (The name is historical: the AMD EPYC machines also report AVX-512, and they reproduce the
 ``beta0.01`` arm's stage-1 losses bit for bit, so they pair with it.)
+Variants that also ran with alpha = 1 (the preset since the tenth session) are paired, task by task,
+against the alpha = 1 run on the same kind of CPU: ``alpha1`` or ``alpha1_epyc``. A preset value a
+variant did not set itself is shown in its overrides with "(preset)".
 BC on the same file and budget closes the table.
 Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
@@ -40,6 +43,9 @@ BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: the MuJoCo preset since th
 # another CPU differ in their numerics, so that machine's runs are compared against this arm.
 AVX512_PRESET_ARM = "preset_avx512"
 XEON = "Intel(R) Xeon(R)"  # how run_choice.cpu_description() names that machine
+# alpha = 1 on top of beta0.01: the preset since the tenth session, run on both kinds of CPU.
+ALPHA1_ARMS = ("alpha1", "alpha1_epyc")
+ALPHA1 = ("guide.alpha=1", "guide.alpha=1.0")
 
 
 def on_grid_budget(result: dict) -> bool:
@@ -72,11 +78,30 @@ def _variant_arms() -> dict[str, tuple[str, dict, dict[str, set[str]]]]:
                 given = list(result["overrides"])
                 if not any(o.startswith("tsidm.beta=") for o in given) and result.get("beta", 1.0) != 1.0:
                     given.append(f"tsidm.beta={result['beta']:g} (preset)")  # ran after the preset took beta = 0.01
+                if not any(o.startswith("guide.alpha=") for o in given) and result.get("alpha", 0.01) != 0.01:
+                    given.append(f"guide.alpha={result['alpha']:g} (preset)")  # ran after the preset took alpha = 1
                 overrides[" ".join(given)] = None
                 cpus.setdefault(path.parent.name, set()).add(result.get("cpu", "unknown"))
         if found:
             arms[folder.name] = ("` / `".join(overrides), found, cpus)
     return arms
+
+
+def _on_xeon(seen: set[str]) -> bool | None:
+    """True or False when every run recorded an Intel Xeon or none did; None for a mix."""
+    xeon = {XEON in cpu for cpu in seen}
+    return next(iter(xeon)) if len(xeon) == 1 else None
+
+
+def _alpha1_bases(variants: dict, cpus: dict[str, set[str]]) -> dict[str, tuple[str, dict]]:
+    """{task: (arm, its scores)}: the alpha = 1 arm whose runs on the task used the same kind of CPU."""
+    bases = {}
+    for task, seen in cpus.items():
+        for arm in ALPHA1_ARMS:
+            if arm in variants and task in variants[arm][1] and _on_xeon(variants[arm][2][task]) is not None \
+                    and _on_xeon(variants[arm][2][task]) == _on_xeon(seen):
+                bases[task] = (arm, variants[arm][1])
+    return bases
 
 
 def _cell(scores: dict[int, float], default: dict[int, float] | None) -> str:
@@ -127,6 +152,8 @@ def render() -> str:
         per_task = {t: (AVX512_PRESET_ARM, avx512_arm) for t, seen in cpus.items()
                     if name != AVX512_PRESET_ARM and on_reencode and avx512_arm
                     and all(XEON in cpu for cpu in seen)}
+        if on_beta and name not in ALPHA1_ARMS and any(o in ALPHA1 for o in overrides.split()):
+            per_task = _alpha1_bases(variants, cpus)
         row(name, f"`{overrides}`", found, base, per_task)
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
