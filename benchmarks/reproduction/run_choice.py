@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from torchrl_tels.training import write_json
 
 REPO = Path(__file__).resolve().parents[2]
@@ -68,6 +70,10 @@ def main():
     start = time.time()
     cmd = run_recipe(args.task, args.seed, run_dir, args.threads, [*args.budget, *args.override])
     results = json.loads((run_dir / "results.json").read_text())
+    # The preset's choices are not in --override, so a later change of the preset would otherwise
+    # leave no trace in the JSON (results.json already records the beta used).
+    config = OmegaConf.load(run_dir / "config.yaml")
+    results.update(alpha=float(config.guide.alpha), reencode_proposal=bool(config.guide.reencode_proposal))
     results.update(variant=args.name, overrides=args.override, budget=args.budget, command=" ".join(cmd),
                    date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, cpu_count=os.cpu_count(),
                    cpu=cpu_description())
