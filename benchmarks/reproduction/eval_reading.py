@@ -5,8 +5,8 @@
 
 The study scores a run by the mean of all ten evaluations (every 500 of its 5k policy steps),
 which counts the half-trained policies of the first steps as much as the last. The paper does
-not say how Table 1 was read. This reads the finished runs of the MuJoCo preset (the
-``beta0.01`` arm) and the issue-6 grid's baselines at the same budget four ways: the study's mean
+not say how Table 1 was read. This reads the finished runs of the ``beta0.01`` arm (the MuJoCo
+preset from the sixth to the tenth session) and the issue-6 grid's baselines at the same budget four ways: the study's mean
 of all ten, the mean of the last four (3.5k-5k steps), the last evaluation alone, and the best
 one (an upper bound no protocol should use). Nothing is trained. ``--arms`` reads other
 variants of the study the same way, and ``--against`` names the arm the bracketed paired change
@@ -63,7 +63,7 @@ def main():
                 if method != args.against and paired:
                     text += f" ({statistics.mean(paired):+.1f})"
                 cells.append(text)
-            name = ("TELS, MuJoCo preset" if method == BETA_ARM
+            name = ("TELS, beta0.01 arm (preset before alpha = 1)" if method == BETA_ARM
                     else method.upper() if method in BASELINES else method)
             print(f"| {task} | {name} | {len(runs)} | " + " | ".join(cells) + " |")
     against = args.against.upper() if args.against in BASELINES else args.against
