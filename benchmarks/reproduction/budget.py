@@ -1,0 +1,83 @@
+"""Choice 5's budget on the MuJoCo preset: a longer stage 2 and a longer stage 1 against the study's.
+
+    python benchmarks/reproduction/budget.py
+
+The study compares every choice at 3k TS-IDM steps and 5k policy steps; the paper trains about
+36k and 100k. This reads two arms run on the preset (re-encoding, beta = 0.01, alpha = 1) against
+the preset's own runs at the shared budget on the same seeds and CPU (``alpha1_epyc``; ``alpha1``
+on halfcheetah, which ran on the same AMD machine):
+
+- ``long20k_preset``: 20k policy steps, evaluated every 1k (``tsidm.steps=3000 optim.steps=20000
+  eval.interval=1000 eval.episodes=10``), scored like the recipe, by its last ten evaluations
+  (11k-20k). Its first 5k steps are the preset run's own (the evaluations they share are equal to
+  every digit), so the change is what 15k more steps do to that run. It is given against the 5k
+  run's last four evaluations (3.5k-5k) as well as its mean of all ten, which counts the
+  half-trained policies of the first steps (0.5k-3k).
+- ``tsidm9k``: a 3x longer stage 1 (``tsidm.steps=9000 optim.steps=5000 eval.interval=500
+  eval.episodes=10``), scored like the study, by all ten evaluations.
+
+Nothing is trained here.
+"""
+from __future__ import annotations
+
+import json
+import statistics
+
+from summary import HERE, SHARED_BUDGET, TASKS
+
+PRESET_ARMS = {task: "alpha1" if task.startswith("halfcheetah") else "alpha1_epyc" for task in TASKS}
+LONG_STAGE2 = ("long20k_preset", ["tsidm.steps=3000", "optim.steps=20000", "eval.interval=1000", "eval.episodes=10"])
+LONG_STAGE1 = ("tsidm9k", ["tsidm.steps=9000", "optim.steps=5000", "eval.interval=500", "eval.episodes=10"])
+
+
+def runs(arm: str, budget: list[str], task: str) -> dict[int, dict]:
+    """{seed: result} of ``arm``'s runs on ``task`` that used ``budget``."""
+    found = {}
+    for path in sorted((HERE / "results" / arm / task).glob("seed*.json")):
+        result = json.loads(path.read_text())
+        if result["budget"] == budget:
+            found[int(result["seed"])] = result
+    return found
+
+
+def scores(result: dict) -> list[float]:
+    return [evaluation["score"] for evaluation in result["evaluations"]]
+
+
+def main() -> None:
+    print("| task | seed | preset, 5k policy steps: all 10 | last 4 | 20k steps: last 10 | change from all 10 "
+          "| from last 4 | 9k TS-IDM steps: all 10 | change |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    long_changes, late_changes, stage1_changes = [], [], []
+    for task in TASKS:
+        preset = runs(PRESET_ARMS[task], SHARED_BUDGET, task)
+        long = runs(*LONG_STAGE2, task)
+        stage1 = runs(*LONG_STAGE1, task)
+        for seed in sorted(set(long) | set(stage1)):
+            base = preset[seed]["final_normalized_score_mean"]
+            last4 = statistics.mean(scores(preset[seed])[-4:])
+            cells = [f"{base:.1f}", f"{last4:.1f}"]
+            if seed in long:
+                late = long[seed]["final_normalized_score_mean"]
+                long_changes.append(late - base)
+                late_changes.append(late - last4)
+                cells += [f"{late:.1f}", f"{late - base:+.1f}", f"{late - last4:+.1f}"]
+            else:
+                cells += ["", "", ""]
+            if seed in stage1:
+                longer = stage1[seed]["final_normalized_score_mean"]
+                stage1_changes.append(longer - base)
+                cells += [f"{longer:.1f}", f"{longer - base:+.1f}"]
+            else:
+                cells += ["", ""]
+            print(f"| {task} | {seed} | " + " | ".join(cells) + " |")
+    for name, changes in (("20k policy steps (last 10) against the 5k run's all 10", long_changes),
+                          ("20k policy steps (last 10) against the 5k run's last 4", late_changes),
+                          ("9k TS-IDM steps", stage1_changes)):
+        if changes:
+            print(f"\n{name}: {sum(c > 0 for c in changes)} of {len(changes)} up, "
+                  f"mean change {statistics.mean(changes):+.1f}.")
+
+
+if __name__ == "__main__":
+    main()
