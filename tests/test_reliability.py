@@ -551,8 +551,9 @@ def test_write_text_replaces_whole_file_and_leaves_no_temp(tmp_path, monkeypatch
 
 def test_presets_choose_the_readings_the_study_measured():
     """MuJoCo re-encodes the guide's proposal (issue 8, choice 7), weights Eq. (7)'s dynamics
-    terms with beta = 0.01 (choice 5) and Eq. (9)'s value term with alpha = 1 (choice 1); AntMaze
-    keeps Eq. (11) as written, the base beta and Table 11's alpha = 10."""
+    terms with beta = 0.01 (choice 5) and Eq. (9)'s value term with alpha = 1 (choice 1), and
+    trains 3k TS-IDM and 5k policy steps (choice 5); AntMaze keeps Eq. (11) as written, the base
+    beta, Table 11's alpha = 10 and the paper's budget."""
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         base = compose("config", overrides=["preset=quick"])
         mujoco, maze = compose("config"), compose("config", overrides=["preset=maze"])
@@ -560,5 +561,9 @@ def test_presets_choose_the_readings_the_study_measured():
     assert maze.guide.mode == "stochastic" and maze.guide.reencode_proposal is False
     assert base.tsidm.beta == 1.0 and mujoco.tsidm.beta == 0.01 and maze.tsidm.beta == 1.0
     assert base.guide.alpha == 0.01 and mujoco.guide.alpha == 1.0 and maze.guide.alpha == 10.0
+    # The MuJoCo preset trains at the study's budget (choice 5); AntMaze keeps Tables 10-11's.
+    assert (mujoco.tsidm.steps, mujoco.optim.steps, mujoco.eval.interval) == (3000, 5000, 500)
+    assert (maze.tsidm.steps, maze.tsidm.epochs, maze.optim.steps) == (None, 1000, 100_000)
+    assert mujoco.eval.last_n == 10 and mujoco.eval.episodes == 10
     # Everything else in the MuJoCo preset is the paper's base config.
     assert mujoco.value.target_update_rate == 0.05
