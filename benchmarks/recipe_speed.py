@@ -1,9 +1,9 @@
-"""Speed of the TELS recipe at the paper's widths on this machine, and the default run it implies.
+"""Speed of the TELS recipe at the paper's widths on this machine, and the paper-budget run it implies.
 
 Runs ``recipes/tels_offline.py`` itself (paper widths, Table 10/11) for a short
 number of steps per stage, for each precision, interleaved and repeated, and
 reads the steps/s it reports in ``results.json``. It prints median steps/s per
-stage and the wall time of the full default run those rates imply (Table 10:
+stage and the wall time of the full paper-budget run those rates imply (Table 10:
 1000 TS-IDM epochs; Table 11: 100k policy steps; 20 evaluations of 10 episodes).
 
     python benchmarks/recipe_speed.py --threads 2
@@ -70,7 +70,7 @@ def main():
             )
     tsidm_steps = 1000 * math.ceil(9013 / 256)  # Table 10: 1000 epochs at batch 256
     print(f"{'precision':<10}{'TS-IDM steps/s':>16}{'policy steps/s':>16}{'eval s/episode':>16}"
-          f"{'projected default run (min)':>30}")
+          f"{'projected paper-budget run (min)':>30}")
     for precision, runs in rates.items():
         med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
         minutes = (tsidm_steps / med["tsidm_steps_per_s"] + 100_000 / med["policy_steps_per_s"]

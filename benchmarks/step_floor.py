@@ -1,4 +1,4 @@
-"""Where the time of a TELS train step goes, and the fastest a default run could be on this CPU.
+"""Where the time of a TELS train step goes, and the fastest a paper-budget run could be on this CPU.
 
 Builds both stages as ``recipes/tels_offline.py`` does (paper widths, Tables
 10-11, batch 256, fused Adam, hopper-medium-v2 10k) and, with torch's thread
@@ -9,7 +9,7 @@ count pinned, prints:
   medians over interleaved repeats, for each precision asked for;
 - the matrix-multiplication FLOPs of one step of each stage (torch profiler)
   and the best rate this CPU reaches on the step's largest product
-  (256x1024 @ 1024x1024), hence a floor for the default run (Table 10:
+  (256x1024 @ 1024x1024), hence a floor for the paper-budget run (Table 10:
   1000 epochs; Table 11: 100k steps) that no removal of overhead can beat.
 
     python benchmarks/step_floor.py --threads 2
@@ -166,7 +166,7 @@ def main():
     for stage, steps in (("tsidm", tsidm_steps), ("policy", policy_steps)):
         print(f"{stage}: {work[stage]:.2f} GFLOP of matrix products per step x {steps} steps "
               f"= at least {floor[stage]:.1f} min")
-    print(f"floor of the default run in fp32 (matrix products only, no evaluation): "
+    print(f"floor of the paper-budget run in fp32 (matrix products only, no evaluation): "
           f"{floor['tsidm'] + floor['policy']:.1f} min")
 
 
