@@ -20,10 +20,9 @@ Nothing is trained here.
 """
 from __future__ import annotations
 
-import json
 import statistics
 
-from summary import HERE, SHARED_BUDGET, TASKS
+from summary import HERE, SHARED_BUDGET, TASKS, evaluation_scores, seed_results
 
 PRESET_ARMS = {task: "alpha1" if task.startswith("halfcheetah") else "alpha1_epyc" for task in TASKS}
 LONG_STAGE2 = ("long20k_preset", ["tsidm.steps=3000", "optim.steps=20000", "eval.interval=1000", "eval.episodes=10"])
@@ -32,16 +31,7 @@ LONG_STAGE1 = ("tsidm9k", ["tsidm.steps=9000", "optim.steps=5000", "eval.interva
 
 def runs(arm: str, budget: list[str], task: str) -> dict[int, dict]:
     """{seed: result} of ``arm``'s runs on ``task`` that used ``budget``."""
-    found = {}
-    for path in sorted((HERE / "results" / arm / task).glob("seed*.json")):
-        result = json.loads(path.read_text())
-        if result["budget"] == budget:
-            found[int(result["seed"])] = result
-    return found
-
-
-def scores(result: dict) -> list[float]:
-    return [evaluation["score"] for evaluation in result["evaluations"]]
+    return seed_results(HERE / "results" / arm / task, lambda result: result["budget"] == budget)
 
 
 def main() -> None:
@@ -55,7 +45,7 @@ def main() -> None:
         stage1 = runs(*LONG_STAGE1, task)
         for seed in sorted(set(long) | set(stage1)):
             base = preset[seed]["final_normalized_score_mean"]
-            last4 = statistics.mean(scores(preset[seed])[-4:])
+            last4 = statistics.mean(evaluation_scores(preset[seed])[-4:])
             cells = [f"{base:.1f}", f"{last4:.1f}"]
             if seed in long:
                 late = long[seed]["final_normalized_score_mean"]

@@ -15,10 +15,9 @@ is taken against (BC unless given).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 
-from summary import BETA_ARM, GRID, HERE, SHARED_BUDGET, TASKS, on_grid_budget
+from summary import BETA_ARM, GRID, HERE, SHARED_BUDGET, TASKS, evaluation_scores, on_grid_budget, seed_results
 
 BASELINES = ("bc", "td3bc", "iql")
 READINGS = {
@@ -32,15 +31,10 @@ READINGS = {
 def curves(method: str, task: str) -> dict[int, list[float]]:
     """{seed: the scores of its evaluations in order} of ``method``'s runs at the shared budget."""
     if method in BASELINES:
-        paths, wanted = (GRID / method / task).glob("seed*.json"), on_grid_budget
+        results = seed_results(GRID / method / task, on_grid_budget)
     else:
-        paths, wanted = (HERE / "results" / method / task).glob("seed*.json"), lambda r: r["budget"] == SHARED_BUDGET
-    found = {}
-    for path in sorted(paths):
-        result = json.loads(path.read_text())
-        if wanted(result):
-            found[int(result["seed"])] = [e["score"] for e in result["evaluations"]]
-    return found
+        results = seed_results(HERE / "results" / method / task, lambda r: r["budget"] == SHARED_BUDGET)
+    return {seed: evaluation_scores(result) for seed, result in results.items()}
 
 
 def main():

@@ -48,6 +48,21 @@ ALPHA1_ARMS = ("alpha1", "alpha1_epyc")
 ALPHA1 = ("guide.alpha=1", "guide.alpha=1.0")
 
 
+def seed_results(folder: Path, wanted) -> dict[int, dict]:
+    """{seed: result} of the ``seed*.json`` runs in ``folder`` (one arm, one task) that ``wanted`` accepts."""
+    found = {}
+    for path in sorted(folder.glob("seed*.json")):
+        result = json.loads(path.read_text())
+        if wanted(result):
+            found[int(result["seed"])] = result
+    return found
+
+
+def evaluation_scores(result: dict) -> list[float]:
+    """The normalized score of each of a run's evaluations, in order."""
+    return [evaluation["score"] for evaluation in result["evaluations"]]
+
+
 def on_grid_budget(result: dict) -> bool:
     """Whether an issue-6 grid result ran at the study's shared budget."""
     return all(flag in result.get("command", "") for flag in GRID_BUDGET)
