@@ -43,7 +43,8 @@ from torchrl_tels.data import (
     normalized_score,
     subset_dataset,
 )
-from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
+from torchrl_tels.diagnostics import is_frozen, latent_statistics, rollout_statistics
+from torchrl_tels.envs import make_eval_env, rollout_episodes, TSIDMEncoderTransform
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, save_guide_policy, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
 from torchrl_tels.record import RunLogger
@@ -60,7 +61,7 @@ from torchrl_tels.training import (
     write_json,
 )
 
-TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_sum")
+TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_sum", "latent_rms", "latent_step_rms")
 # App. B.5 picks beta by "the lowest TS-IDM training loss": "unweighted" compares the four terms'
 # sum (ell_sum), "weighted" Eq. (7) itself (ell_total), which scales three terms by the candidate.
 SELECTION_KEYS = {"unweighted": "final_sum", "weighted": "final_loss"}
@@ -86,10 +87,12 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
         action_decoder_cells=t.action_decoder_cells,
         dynamics_cells=t.dynamics_cells,
         inverse_dropout=t.inverse_dropout,
+        latent_standardization=t.latent_scale == "standardized",
     )
     tsidm.fit_state_normalization(data["observation"])
     loss_module = TSIDMLoss(
-        tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction, check_inputs=False
+        tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction,
+        relative=t.latent_scale == "relative", check_inputs=False,
     )
     optim = torch.optim.Adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
     buffer = make_offline_replay_buffer(data, t.batch_size)
@@ -127,6 +130,8 @@ def fit_tsidm(cfg, data, beta, candidate, state, run_dir, logger):
                 "rng": get_rng_state(), "history": history, "tail": tail,
             })
     check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total_steps}")
+    if tsidm.latent_standardization:
+        tsidm.fit_latent_standardization(data["observation"])
     final = {key: sum(pair[i] for pair in tail) / len(tail) for i, key in enumerate(("final_loss", "final_sum"))}
     return tsidm.eval(), final, history
 
@@ -250,6 +255,9 @@ def train(cfg: DictConfig) -> dict:
     # Algorithm 1, line 6: the frozen encoder maps the whole dataset once, at write time.
     buffer = make_offline_replay_buffer(data, cfg.optim.batch_size, write_transforms=[TSIDMEncoderTransform(tsidm)])
     latent_dim = tsidm.latent_state_dim
+    latent_stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
+    data_action_std = data["action"].std(0).mean().item()
+    print(f"latent scale: RMS spread {latent_stats['latent_rms']:.4g}, RMS step {latent_stats['latent_step_rms']:.4g}")
     torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
     value_net = make_latent_value(latent_dim, cfg.value.num_cells)
     guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells)
@@ -257,7 +265,9 @@ def train(cfg: DictConfig) -> dict:
     value_loss.make_value_estimator(gamma=cfg.value.gamma)
     guide_loss = TSymGuideLoss(
         guide, value_net, tsidm, mode=cfg.guide.mode, alpha=cfg.guide.alpha, eta=cfg.guide.eta,
-        tsym_regularizer=cfg.guide.tsym_regularizer, max_weight=cfg.guide.max_weight,
+        tsym_regularizer=cfg.guide.tsym_regularizer, tsym_weight=cfg.guide.tsym_weight,
+        tsym_reference=latent_stats["latent_step_rms"] ** 2 if cfg.guide.tsym_relative else None,
+        max_weight=cfg.guide.max_weight,
         dim_reduction=cfg.tsidm.dim_reduction, check_inputs=False,
     )
     guide_loss.make_value_estimator(gamma=cfg.value.gamma)
@@ -308,11 +318,20 @@ def train(cfg: DictConfig) -> dict:
         if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.optim.steps:
             eval_start = time.perf_counter()
             actor.eval()
-            returns, lengths = evaluate_policy(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps, with_lengths=True,
-                                      seed=cfg.seed * 100_000 + (step + 1))
+            returns, lengths, behaviour = [], [], []
+            for rollout in rollout_episodes(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
+                                            seed=cfg.seed * 100_000 + (step + 1)):
+                returns.append(rollout["next", "reward"].sum().item())
+                lengths.append(rollout.shape[-1])
+                behaviour.append(rollout_statistics(rollout))
             scores = [normalized_score(task, r) for r in returns]
+            guide_step = sum(b["guide_step_rms"] for b in behaviour) / len(behaviour)
+            action_std = sum(b["action_std"] for b in behaviour) / len(behaviour)
             evaluations.append({"step": step + 1, "returns": returns, "lengths": lengths, "scores": scores,
-                                "score": sum(scores) / len(scores)})
+                                "score": sum(scores) / len(scores), "guide_step_rms": guide_step,
+                                "action_std": action_std,
+                                "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
+                                                    data_action_std)})
             logger.log_scalars({"eval/return": sum(returns) / len(returns),
                                 "eval/normalized_score": evaluations[-1]["score"]}, step + 1)
             eval_time += time.perf_counter() - eval_start
@@ -343,7 +362,17 @@ def train(cfg: DictConfig) -> dict:
         "final_normalized_score_mean": final.mean().item(),
         "final_normalized_score_std": final.std(unbiased=False).item(),
         "final_over_last_n_evaluations": len(last),
+        "second_half_score_mean": sum(e["score"] for e in evaluations[len(evaluations) // 2:])
+        / max(len(evaluations) - len(evaluations) // 2, 1),
         "evaluations": evaluations,
+        "diagnostics": {
+            **latent_stats,
+            "data_action_std": data_action_std,
+            "tsidm_history": {k: v for k, v in tsidm_history.items() if k.startswith("latent")},
+            "guide_history": {k: v for k, v in policy_history.items()
+                              if k in ("guide/tsym_to_state_ratio", "guide/guide_step_rms", "guide/loss_tsym",
+                                       "guide/loss_guide_state", "value/value_mean")},
+        },
         "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall["eval_s"]},
         "steps_per_s": {
             "tsidm": tsidm_steps * len(beta_results or [None]) / wall["tsidm_s"] if wall.get("tsidm_s") else None,

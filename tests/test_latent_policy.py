@@ -174,7 +174,7 @@ def test_tsym_switch_removes_exactly_the_regularizer(mode):
     without.make_value_estimator(gamma=0.99)
     td = latent_batch(tsidm)
     a, b = with_reg(td), without(td)
-    assert set(a.keys()) - set(b.keys()) == {"loss_tsym"}
+    assert {k for k in set(a.keys()) - set(b.keys()) if k.startswith("loss_")} == {"loss_tsym"}
     assert set(b.keys()) == set(without.out_keys)
     for key in b.keys():
         torch.testing.assert_close(a[key], b[key])
@@ -244,7 +244,7 @@ def test_actor_options_for_the_open_choices():
     td = TensorDict({"observation": torch.randn(B, OBS)}, [B])
     with torch.no_grad():
         z = tsidm.encode_state(td["observation"])
-        proposal = tsidm.state_encoder(tsidm.decode_state(guide.module(z)))
+        proposal = tsidm.embed_state(tsidm.decode_state(guide.module(z)))
         expected = tsidm.decode_action(tsidm.infer_latent_action(z, proposal))
         reencoded = make_tels_actor(tsidm, guide, reencode_proposal=True)(td.clone())["action"]
         plain = make_tels_actor(tsidm, guide)(td.clone())["action"]

@@ -89,13 +89,13 @@ def validate_config(cfg) -> None:
     for path in ("tsidm.lr", "value.lr", "guide.lr", "guide.max_weight"):
         if _number(cfg, path) <= 0:
             raise ConfigError(f"{path} must be > 0, got {_number(cfg, path)}.")
-    for path in ("guide.alpha", "guide.eta", "tsidm.weight_decay"):
+    for path in ("guide.alpha", "guide.eta", "guide.tsym_weight", "tsidm.weight_decay"):
         if _number(cfg, path) < 0:
             raise ConfigError(f"{path} must be >= 0, got {_number(cfg, path)}.")
     for path in ("dataset.reward_scale", "dataset.reward_bias"):
         _number(cfg, path)
     _check_deletion(cfg)
-    for path in ("guide.tsym_regularizer", "guide.reencode_proposal", "guide.act_with_dropout"):
+    for path in ("guide.tsym_regularizer", "guide.tsym_relative", "guide.reencode_proposal", "guide.act_with_dropout"):
         if not isinstance(OmegaConf.select(cfg, path), bool):
             raise ConfigError(f"{path} must be true or false, got {OmegaConf.select(cfg, path)!r}.")
     if beta == "auto" and len(cfg.tsidm.beta_candidates) == 0:
@@ -128,6 +128,7 @@ def validate_config(cfg) -> None:
     choices = {
         "tsidm.ablation": ("ae", "dyn", "ode", "full"),
         "tsidm.dim_reduction": ("sum", "mean"),
+        "tsidm.latent_scale": ("free", "relative", "standardized"),
         "tsidm.beta_selection": ("unweighted", "weighted"),
         "guide.mode": ("deterministic", "stochastic"),
         "dataset.subset": SUBSET_MODES,

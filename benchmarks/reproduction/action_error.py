@@ -87,7 +87,7 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
         out = actor(TensorDict({"observation": observation}, batch_size=observation.shape[:1]))
         z, proposal = out[LATENT_KEY], out[GUIDE_KEY]
         z_next = tsidm.encode_state(next_observation)
-        reencoded = tsidm.state_encoder(tsidm.decode_state(proposal))
+        reencoded = tsidm.embed_state(tsidm.decode_state(proposal))
 
         def act(z_prime):
             return tsidm.decode_action(tsidm.infer_latent_action(z, z_prime)).clamp(-1, 1)

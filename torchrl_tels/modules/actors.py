@@ -144,7 +144,7 @@ class LatentActionHead(_FrozenTSIDMPart):
 
     def forward(self, latent_state: torch.Tensor, next_latent_state: torch.Tensor) -> torch.Tensor:
         if self.reencode_proposal:
-            next_latent_state = self.tsidm.state_encoder(self.tsidm.decode_state(next_latent_state))
+            next_latent_state = self.tsidm.embed_state(self.tsidm.decode_state(next_latent_state))
         self.tsidm.inverse_dynamics.train(self.inverse_dropout)
         try:
             # Eq. (11)

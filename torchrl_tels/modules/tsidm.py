@@ -11,7 +11,15 @@ from torchrl.modules import MLP
 
 from torchrl_tels.checkpoint import atomic_save, CheckpointError, load_checkpoint
 
-__all__ = ["TSIDM", "jvp", "squared_norm"]
+__all__ = ["TSIDM", "jvp", "squared_norm", "standardize"]
+
+#: Floor of the latent standard deviation, so a constant latent dimension does not blow up.
+LATENT_STD_EPS = 1e-6
+
+
+def standardize(x: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``(x - loc) / scale``: the fixed-scale latent of ``TSIDM(latent_standardization=True)``."""
+    return (x - loc) / scale
 
 
 def squared_norm(x: torch.Tensor, dim_reduction: str = "sum") -> torch.Tensor:
@@ -89,6 +97,16 @@ class TSIDM(nn.Module):
         encoder_cells, decoder_cells, inverse_cells, action_decoder_cells,
         dynamics_cells: hidden widths (Table 10 defaults).
         inverse_dropout: dropout in :math:`h_{inv}` (Table 10: 0.1).
+        latent_standardization: if ``True``, :math:`z_s` is the encoder's output
+            standardized per dimension, :math:`z_s = (e(s) - \mu_e) / \sigma_e`.
+            Eq. (7) is invariant to rescaling the latent space except for
+            :math:`\ell_{dyn}` and :math:`\ell_{T\text{-}sym}`, which shrink as
+            :math:`c^2`; a fixed-scale latent removes that direction. Training
+            (:class:`~torchrl_tels.objectives.TSIDMLoss`) standardizes with the
+            batch's statistics, gradient included, so the scale of :math:`e`
+            carries no gradient; acting uses the ``latent_loc``/``latent_scale``
+            buffers, set from data by :meth:`fit_latent_standardization` and saved
+            with the model. Not in the paper; off by default.
         obs_loc, obs_scale: state normalization statistics; identity if omitted.
             Use :meth:`set_state_normalization` to fit them from data.
     """
@@ -106,6 +124,7 @@ class TSIDM(nn.Module):
         action_decoder_cells: Sequence[int] = (512, 512),
         dynamics_cells: Sequence[int] = (256, 256),
         inverse_dropout: float | None = 0.1,
+        latent_standardization: bool = False,
         obs_loc: torch.Tensor | None = None,
         obs_scale: torch.Tensor | None = None,
     ) -> None:
@@ -142,6 +161,10 @@ class TSIDM(nn.Module):
         self.register_buffer("obs_loc", torch.zeros(self.observation_dim))
         self.register_buffer("obs_scale", torch.ones(self.observation_dim))
         self.set_state_normalization(obs_loc, obs_scale)
+        self.latent_standardization = bool(latent_standardization)
+        if self.latent_standardization:
+            self.register_buffer("latent_loc", torch.zeros(zs))
+            self.register_buffer("latent_scale", torch.ones(zs))
 
     # ------------------------------------------------------------------ config
     def config(self) -> dict:
@@ -163,6 +186,7 @@ class TSIDM(nn.Module):
             "latent_state_dim": self.latent_state_dim,
             "latent_action_dim": self.latent_action_dim,
             "inverse_dropout": dropout,
+            "latent_standardization": self.latent_standardization,
             **widths,
         }
 
@@ -190,18 +214,32 @@ class TSIDM(nn.Module):
         observations = observations.reshape(-1, self.observation_dim)
         self.set_state_normalization(observations.mean(0), observations.std(0))
 
+    @torch.no_grad()
+    def fit_latent_standardization(self, observations: torch.Tensor, batch_size: int = 65536) -> None:
+        """Sets ``latent_loc``/``latent_scale`` to the mean/std of the encoder's output over ``observations``."""
+        if not self.latent_standardization:
+            raise ValueError("fit_latent_standardization: this TSIDM was built with latent_standardization=False.")
+        observations = observations.reshape(-1, self.observation_dim)
+        raw = torch.cat([self.state_encoder(self.normalize_state(chunk)) for chunk in observations.split(batch_size)])
+        self.latent_loc.copy_(raw.mean(0))
+        self.latent_scale.copy_(raw.std(0).clamp_min(LATENT_STD_EPS))
+
     # --------------------------------------------------------------- the maps
     def normalize_state(self, observation: torch.Tensor) -> torch.Tensor:
         # Gym envs emit float64 observations; the networks run in the buffers' dtype.
         observation = observation.to(self.obs_loc.dtype)
         return (observation - self.obs_loc) / self.obs_scale
 
-    def denormalize_state(self, normalized: torch.Tensor) -> torch.Tensor:
-        return normalized * self.obs_scale + self.obs_loc
+    def embed_state(self, normalized_state: torch.Tensor) -> torch.Tensor:
+        """:math:`z_s = \\phi_s(s)` from a normalized state (standardized when the model is)."""
+        latent = self.state_encoder(normalized_state)
+        if self.latent_standardization:
+            latent = standardize(latent, self.latent_loc, self.latent_scale)
+        return latent
 
     def encode_state(self, observation: torch.Tensor) -> torch.Tensor:
         """:math:`z_s = \\phi_s(s)` from a raw (unnormalized) observation."""
-        return self.state_encoder(self.normalize_state(observation))
+        return self.embed_state(self.normalize_state(observation))
 
     def decode_state(self, latent_state: torch.Tensor) -> torch.Tensor:
         """:math:`\\hat s = \\psi_s(z_s)`, in the normalized state space."""
@@ -227,12 +265,6 @@ class TSIDM(nn.Module):
         """:math:`-\\dot z_s = h_{rvs}(z_{s'}, z_a)`."""
         return self.reverse_dynamics(next_latent_state, latent_action)
 
-    def infer_action(self, observation: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
-        """Seen from outside, the TS-IDM is an inverse dynamics model: (s, s') -> â."""
-        z = self.encode_state(observation)
-        z_next = self.encode_state(next_observation)
-        return self.decode_action(self.infer_latent_action(z, z_next))
-
     def tsym_consistency(
         self,
         latent_state: torch.Tensor,
@@ -250,9 +282,6 @@ class TSIDM(nn.Module):
         z_dot = self.latent_forward(latent_state, latent_action)
         reverse = self.latent_reverse(latent_state + z_dot, latent_action)
         return squared_norm(z_dot + reverse, dim_reduction)
-
-    def forward(self, observation: torch.Tensor, next_observation: torch.Tensor) -> torch.Tensor:
-        return self.infer_action(observation, next_observation)
 
     # ------------------------------------------------------------ save/load
     CHECKPOINT_FORMAT = "torchrl_tels.tsidm/v1"

@@ -10,13 +10,17 @@ from tensordict.nn import dispatch
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
-from torchrl_tels.modules.tsidm import jvp, squared_norm, TSIDM
+from torchrl_tels.modules.tsidm import jvp, LATENT_STD_EPS, squared_norm, standardize, TSIDM
 from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin
 
-__all__ = ["TSIDMLoss", "TSIDM_ABLATIONS"]
+__all__ = ["TSIDMLoss", "TSIDM_ABLATIONS", "LATENT_SCALES"]
 
 #: Table 3's variants, in the order the paper adds the terms.
 TSIDM_ABLATIONS = ("ae", "dyn", "ode", "full")
+#: How the latent scale is fixed: ``free`` (Eq. 7 as written), ``relative`` (the
+#: latent-space terms over the batch's latent step) or ``standardized`` (a
+#: fixed-scale φ_s, see ``TSIDM(latent_standardization=True)``).
+LATENT_SCALES = ("free", "relative", "standardized")
 
 
 class TSIDMLoss(LazyInKeysMixin, LossModule):
@@ -35,6 +39,24 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
                     + \|\nabla_{z_{s'}}\psi_s(z_{s'})\,h_{rvs}(z_{s'}, z_a) + \dot s\|^2 && (5)\\
         \ell_{T\text{-}sym} &= \|h_{fwd}(z_s, z_a) + h_{rvs}(z_s + h_{fwd}(z_s, z_a), z_a)\|^2 && (6)\\
         \mathcal{L} &= \ell_{rec} + \beta(\ell_{dyn} + \ell_{ode} + \ell_{T\text{-}sym}) && (7)
+
+    **Latent scale.** Eq. (7) has an exact symmetry: for any :math:`c > 0`,
+    :math:`\phi_s \to c\phi_s`, :math:`\psi_s(z) \to \psi_s(z/c)`,
+    :math:`h_{inv}(z, z') \to h_{inv}(z/c, z'/c)` and
+    :math:`h_{fwd}, h_{rvs} \to c\,h(z/c, z_a)` leave :math:`\ell_{rec}` and
+    :math:`\ell_{ode}` unchanged and multiply :math:`\ell_{dyn}` and
+    :math:`\ell_{T\text{-}sym}` by :math:`c^2`. Gradient descent can therefore
+    lower those two terms by shrinking the latent space instead of learning
+    dynamics. Two options remove the direction:
+
+    * a TS-IDM built with ``latent_standardization=True``: the loss
+      standardizes :math:`\phi_s`'s output with the batch's mean and standard
+      deviation (gradient through both, as batch normalization does), so every
+      term is exactly invariant and the scale carries no gradient;
+    * ``relative=True``: :math:`\ell_{dyn}` and :math:`\ell_{T\text{-}sym}` are
+      divided by the batch's mean latent step
+      :math:`\bar d = \frac1B\sum_i\|z_{s'_i} - z_{s_i}\|^2` (gradient through
+      :math:`\bar d`), which scales as :math:`c^2` too.
 
     The four Jacobian-vector products are computed with forward-mode AD
     (:func:`torchrl_tels.modules.tsidm.jvp`), never by building Jacobians.
@@ -59,6 +81,8 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
             ``"dyn"`` (+ h_fwd, h_rvs: + ℓ_dyn), ``"ode"`` (+ ℓ_ode) or ``"full"`` (+ ℓ_T-sym).
         dim_reduction: how :math:`\|\cdot\|^2` reduces over vector entries,
             ``"sum"`` (as written, default) or ``"mean"``.
+        relative: divide :math:`\ell_{dyn}` and :math:`\ell_{T\text{-}sym}` by the
+            batch's mean latent step :math:`\bar d` (see "Latent scale"). Default ``False``.
         check_inputs: validate keys, shapes and finiteness of every batch.
 
     Examples:
@@ -106,6 +130,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         beta: float = 1.0,
         ablation: str = "full",
         dim_reduction: str = "sum",
+        relative: bool = False,
         check_inputs: bool = True,
     ) -> None:
         self._in_keys = None
@@ -126,6 +151,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         self.beta = beta
         self.ablation = ablation
         self.dim_reduction = dim_reduction
+        self.relative = bool(relative)
         self.check_inputs = check_inputs
         self.convert_to_functional(tsidm, "tsidm", create_target_params=False)
 
@@ -142,7 +168,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         level = TSIDM_ABLATIONS.index(self.ablation)
         terms = ["loss_state_rec", "loss_action_rec", "loss_dyn", "loss_ode", "loss_tsym"]
         ells = ["ell_rec", "ell_dyn", "ell_ode", "ell_tsym"]
-        return terms[: 2 + level] + ells[: 1 + level] + ["ell_total", "ell_sum"]
+        return terms[: 2 + level] + ells[: 1 + level] + ["ell_total", "ell_sum", "latent_rms", "latent_step_rms"]
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         self._set_in_keys()
@@ -159,6 +185,16 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         next_observation = get(("next", keys.observation), obs_dim)
         action = get(keys.action, act_dim)
         return observation, action, next_observation
+
+    @staticmethod
+    def _standardize(latent: torch.Tensor, tangent: torch.Tensor | None):
+        # Batch statistics with their gradient: the encoder's output scale then
+        # cancels exactly and carries no gradient. The JVP is per sample, with
+        # the statistics held fixed, as φ_s acts once they are frozen.
+        loc = latent.mean(0)
+        scale = latent.var(0, unbiased=True).add(LATENT_STD_EPS**2).sqrt()
+        latent = standardize(latent, loc, scale)
+        return latent, None if tangent is None else tangent / scale
 
     def _reduce(self, per_sample: torch.Tensor) -> torch.Tensor:
         return per_sample.mean()
@@ -179,10 +215,15 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
             states = torch.cat([s, s_next], 0)
             if level >= 1:
                 z_both, encoder_jvp = self.jvp(tsidm.state_encoder, states, torch.cat([s_dot, -s_dot], 0))
-                jvp_s, jvp_s_next = encoder_jvp.split(s.shape[0], 0)
             else:
-                z_both = tsidm.state_encoder(states)
+                z_both, encoder_jvp = tsidm.state_encoder(states), None
+            if tsidm.latent_standardization:
+                z_both, encoder_jvp = self._standardize(z_both, encoder_jvp)
+            if level >= 1:
+                jvp_s, jvp_s_next = encoder_jvp.split(s.shape[0], 0)
             z, z_next = z_both.split(s.shape[0], 0)
+            # d̄: the batch's mean squared latent step, the scale of ℓ_dyn and ℓ_T-sym
+            latent_step = sq(z_next - z).mean()
             z_a = tsidm.infer_latent_action(z, z_next)
 
             # per-sample regularizers of Eq. (7), in Table 3's order
@@ -218,6 +259,8 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         ell_total = ell_sum = ell_rec
         for name, per_sample in regularizers.items():
             value = self._reduce(per_sample)
+            if self.relative and name in ("dyn", "tsym"):
+                value = value / latent_step.clamp_min(LATENT_STD_EPS**2)
             out[f"loss_{name}"] = self.beta * value
             ells[f"ell_{name}"] = value.detach()
             ell_total = ell_total + self.beta * value.detach()
@@ -226,4 +269,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         ells["ell_total"] = ell_total
         ells["ell_sum"] = ell_sum
         out.update(ells)
+        # the latent scale the symmetry would shrink: RMS spread per dimension and RMS step
+        out["latent_rms"] = z_both.detach().var(0).mean().sqrt()
+        out["latent_step_rms"] = latent_step.detach().sqrt()
         return TensorDict(out, batch_size=[])

@@ -74,6 +74,15 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         alpha: α (Table 11: 0.01 MuJoCo, 10 AntMaze).
         eta: η of Eq. (9) (Appendix B.5: from {1, 5, 10}).
         tsym_regularizer: ``False`` drops :math:`\ell_{T\text{-}sym}` (Fig. 5 ablation).
+        tsym_weight: weight :math:`w` of the guide's :math:`\ell_{T\text{-}sym}` term,
+            ``loss_tsym`` = :math:`w\,\frac1B\sum_i \ell_{T\text{-}sym,i} / d_{ref}`
+            (mean over the batch, :math:`\|\cdot\|^2` reduced by ``dim_reduction``).
+            The paper's Eq. (9)/(10) have :math:`w = 1`, :math:`d_{ref} = 1`.
+        tsym_reference: :math:`d_{ref}`, the data's mean squared latent step
+            :math:`\mathbb E\|z_{s'} - z_s\|^2`. Eq. (6) scales as the square of
+            the latent scale while the state term of Eq. (9) does not; dividing
+            by :math:`d_{ref}` makes ``loss_tsym`` a relative error whatever the
+            latent scale. ``None`` (default) keeps Eq. (9)/(10) as written.
         max_weight: clip of the AWR weight.
         dim_reduction: ``"sum"`` (as written) or ``"mean"`` over vector entries of each norm.
     """
@@ -120,6 +129,8 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         alpha: float = 0.01,
         eta: float = 1.0,
         tsym_regularizer: bool = True,
+        tsym_weight: float = 1.0,
+        tsym_reference: float | None = None,
         max_weight: float = 100.0,
         dim_reduction: str = "sum",
         gamma: float | None = None,
@@ -131,7 +142,11 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
             raise TypeError(_GAMMA_LMBDA_DEPREC_ERROR)
         if mode not in GUIDE_MODES:
             raise ValueError(f"TSymGuideLoss: mode must be one of {GUIDE_MODES}, got {mode!r}.")
-        for name, value, low in (("alpha", alpha, 0.0), ("eta", eta, 0.0), ("max_weight", max_weight, 1e-12)):
+        checks = [("alpha", alpha, 0.0), ("eta", eta, 0.0), ("max_weight", max_weight, 1e-12),
+                  ("tsym_weight", tsym_weight, 0.0)]
+        if tsym_reference is not None:
+            checks.append(("tsym_reference", tsym_reference, 1e-12))
+        for name, value, low in checks:
             if not (math.isfinite(float(value)) and float(value) >= low):
                 raise ValueError(f"TSymGuideLoss: {name} must be a finite number >= {low}, got {value}.")
         if not isinstance(tsidm, TSIDM):
@@ -141,6 +156,8 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         self.alpha = float(alpha)
         self.eta = float(eta)
         self.tsym_regularizer = bool(tsym_regularizer)
+        self.tsym_weight = float(tsym_weight)
+        self.tsym_reference = None if tsym_reference is None else float(tsym_reference)
         self.max_weight = float(max_weight)
         self.dim_reduction = dim_reduction
         self.check_inputs = check_inputs
@@ -176,7 +193,9 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
     def out_keys(self):
         if self.mode == "deterministic":
             keys = ["loss_guide_value", "loss_guide_state"]
-            extra = ["lambda_alpha", "guide_value"]
+            extra = ["lambda_alpha", "guide_value", "guide_step_rms"]
+            if self.tsym_regularizer:
+                extra.append("tsym_to_state_ratio")
         else:
             keys = ["loss_guide_awr"]
             extra = ["advantage", "clipped_weight_fraction"]
@@ -189,11 +208,17 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
             self.value_network(td)
         return td.get(self.tensor_keys.value).squeeze(-1)
 
-    def _tsym(self, latent: torch.Tensor, proposed_next_latent: torch.Tensor) -> torch.Tensor:
-        # ℓ_T-sym(z_s, h_inv(z_s, z')): Eq. (6) applied to the guide's transition.
+    def tsym_loss(self, latent: torch.Tensor, proposed_next_latent: torch.Tensor) -> torch.Tensor:
+        r"""The guide's regularizer, :math:`w\,\mathbb E[\ell_{T\text{-}sym}(z_s, h_{inv}(z_s, z'))] / d_{ref}`.
+
+        Eq. (6) applied to the proposed transition; call inside the frozen TS-IDM's parameters.
+        """
         tsidm = self.tsidm
         latent_action = tsidm.infer_latent_action(latent, proposed_next_latent)
-        return tsidm.tsym_consistency(latent, latent_action, self.dim_reduction)
+        value = tsidm.tsym_consistency(latent, latent_action, self.dim_reduction).mean()
+        if self.tsym_reference is not None:
+            value = value / self.tsym_reference
+        return self.tsym_weight * value
 
     def _check(self, tensordict: TensorDictBase) -> torch.Tensor:
         owner = type(self).__name__
@@ -212,10 +237,12 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         if self.check_inputs:
             self._check(tensordict)
         if self.mode == "deterministic":
-            return self._deterministic_loss(tensordict)
-        return self._stochastic_loss(tensordict)
+            return self.deterministic_loss(tensordict)
+        return self.stochastic_loss(tensordict)
 
-    def _deterministic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def deterministic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        r"""Eq. (9) as losses: ``loss_guide_value`` (:math:`-\lambda_\alpha V(\pi_g(z_s))`),
+        ``loss_guide_state`` (the η term) and ``loss_tsym``, with detached diagnostics."""
         keys = self.tensor_keys
         latent = tensordict.get(keys.latent)
         td = tensordict.select(*self.guide_network.in_keys, strict=False)
@@ -234,12 +261,18 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
                 * squared_norm(self.tsidm.decode_state(proposal) - next_state, self.dim_reduction).mean(),
             }
             if self.tsym_regularizer:
-                out["loss_tsym"] = self._tsym(latent, proposal).mean()
+                out["loss_tsym"] = self.tsym_loss(latent, proposal)
         out["lambda_alpha"] = lambda_alpha
         out["guide_value"] = guide_value.detach().mean()
+        # whether T-symmetry does anything: its share of the state term, and the proposed step size
+        out["guide_step_rms"] = squared_norm((proposal - latent).detach(), self.dim_reduction).mean().sqrt()
+        if self.tsym_regularizer:
+            out["tsym_to_state_ratio"] = out["loss_tsym"].detach() / out["loss_guide_state"].detach().clamp_min(1e-12)
         return TensorDict(out, batch_size=[])
 
-    def _stochastic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def stochastic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        r"""Eq. (10) as losses: ``loss_guide_awr`` (the clipped advantage-weighted
+        log-likelihood) and ``loss_tsym``, with detached diagnostics."""
         keys = self.tensor_keys
         latent = tensordict.get(keys.latent)
         next_latent = tensordict.get(("next", keys.latent))
@@ -257,7 +290,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         out = {"loss_guide_awr": -(weight * dist.log_prob(next_latent)).mean()}
         if self.tsym_regularizer:
             with self.tsidm_params.to_module(self.tsidm, preserve_module_state=False):
-                out["loss_tsym"] = self._tsym(latent, dist.rsample()).mean()
+                out["loss_tsym"] = self.tsym_loss(latent, dist.rsample())
         out["advantage"] = advantage.mean()
         out["clipped_weight_fraction"] = clipped.float().mean()
         return TensorDict(out, batch_size=[])

@@ -1,0 +1,56 @@
+"""Numbers that show whether T-symmetry is doing anything, and whether a policy has frozen.
+
+Eq. (7) can lower ℓ_dyn and ℓ_T-sym by shrinking the latent space (see
+:class:`~torchrl_tels.objectives.TSIDMLoss`, "Latent scale"); a policy acting
+through Eq. (11) can settle into small proposals for which h_inv returns a
+near-constant action. Both show up as numbers here.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
+from torchrl_tels.modules.tsidm import TSIDM
+
+__all__ = ["latent_statistics", "rollout_statistics", "is_frozen", "FREEZE_RATIO"]
+
+#: A rollout is "frozen" when both its proposed latent step and its action spread
+#: fall below this fraction of the data's.
+FREEZE_RATIO = 0.25
+
+
+@torch.no_grad()
+def latent_statistics(tsidm: TSIDM, observation: torch.Tensor, next_observation: torch.Tensor) -> dict[str, float]:
+    """``latent_rms`` (RMS spread of :math:`z_s` per dimension) and ``latent_step_rms``
+    (:math:`\\sqrt{\\mathbb E\\|z_{s'} - z_s\\|^2}`) of a TS-IDM on transitions."""
+    z = tsidm.encode_state(observation)
+    z_next = tsidm.encode_state(next_observation)
+    return {
+        "latent_rms": z.var(0).mean().sqrt().item(),
+        "latent_step_rms": (z_next - z).pow(2).sum(-1).mean().sqrt().item(),
+    }
+
+
+def rollout_statistics(rollout: TensorDictBase, latent_key=LATENT_KEY, guide_key=GUIDE_KEY) -> dict[str, float]:
+    """``guide_step_rms`` (:math:`\\sqrt{\\mathbb E\\|\\pi_g(z) - z\\|^2}`) and ``action_std``
+    (per-dimension std over time, averaged) of one episode of a TELS actor."""
+    for key in (latent_key, guide_key, "action"):
+        if key not in rollout.keys(True):
+            raise KeyError(f"rollout_statistics: the rollout has no {key!r}; was it made by a TELS actor?")
+    step = rollout.get(guide_key) - rollout.get(latent_key)
+    action = rollout.get("action").reshape(-1, rollout.get("action").shape[-1])
+    action_std = action.std(0).mean().item() if action.shape[0] > 1 else 0.0
+    return {"guide_step_rms": step.pow(2).sum(-1).mean().sqrt().item(), "action_std": action_std}
+
+
+def is_frozen(
+    guide_step_rms: float,
+    action_std: float,
+    data_step_rms: float,
+    data_action_std: float,
+    ratio: float = FREEZE_RATIO,
+) -> bool:
+    """True when the policy proposes much smaller latent steps than the data takes and its
+    actions barely vary: the guide → h_inv chain sits at a fixed point."""
+    return guide_step_rms < ratio * data_step_rms and action_std < ratio * data_action_std
