@@ -1,0 +1,73 @@
+"""The freeze diagnostic fires on a frozen actor and stays quiet on one that moves."""
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from torchrl_tels.data import load_dataset
+from torchrl_tels.diagnostics import is_frozen, latent_statistics, rollout_statistics
+from torchrl_tels.envs import make_eval_env, rollout_episodes
+from torchrl_tels.modules import LATENT_KEY, GUIDE_KEY, make_tels_actor, TSIDM
+
+SMALL = dict(encoder_cells=(32, 32), decoder_cells=(32, 32), inverse_cells=(32, 32),
+             action_decoder_cells=(32, 32), dynamics_cells=(32, 32))
+
+
+class Offset(nn.Module):
+    """A guide proposing z + offset: offset 0 never moves in latent space."""
+
+    def __init__(self, offset: torch.Tensor):
+        super().__init__()
+        self.register_buffer("offset", offset)
+
+    def forward(self, latent):
+        return latent + self.offset
+
+
+def behaviour(tsidm, offset, env):
+    guide = TensorDictModule(Offset(offset), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
+    actor = make_tels_actor(tsidm, guide, env.action_spec)
+    (rollout,) = rollout_episodes(actor, env, 1, seed=0, max_steps=60)
+    return rollout_statistics(rollout)
+
+
+def test_freeze_diagnostic_fires_on_a_frozen_actor():
+    torch.manual_seed(0)
+    data = load_dataset("hopper-medium-v2-10k")
+    tsidm = TSIDM(11, 3, **SMALL)
+    tsidm.fit_state_normalization(data["observation"])
+    stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
+    data_action_std = data["action"].std(0).mean().item()
+    env = make_eval_env("Hopper-v4")
+
+    # A frozen actor: the guide proposes no step and h_inv's decoder returns one action.
+    frozen_tsidm = TSIDM(11, 3, **SMALL)
+    frozen_tsidm.load_state_dict(tsidm.state_dict())
+    with torch.no_grad():
+        frozen_tsidm.action_decoder[-1].weight.zero_()
+    frozen = behaviour(frozen_tsidm, torch.zeros(11), env)
+    assert frozen["guide_step_rms"] == 0.0
+    assert frozen["action_std"] < 1e-6
+    assert is_frozen(frozen["guide_step_rms"], frozen["action_std"], stats["latent_step_rms"], data_action_std)
+
+    # The same model with proposals as large as the data's steps and varied actions is not frozen.
+    offset = torch.full((11,), stats["latent_step_rms"] / 11**0.5)
+    moving = behaviour(tsidm, offset, env)
+    torch.testing.assert_close(torch.tensor(moving["guide_step_rms"]), torch.tensor(stats["latent_step_rms"]),
+                               rtol=1e-4, atol=0)
+    assert not is_frozen(moving["guide_step_rms"], moving["action_std"], stats["latent_step_rms"], data_action_std)
+
+
+def test_latent_statistics_match_a_direct_computation():
+    torch.manual_seed(0)
+    data = load_dataset("hopper-medium-v2-10k")[:500]
+    tsidm = TSIDM(11, 3, **SMALL)
+    stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
+    with torch.no_grad():
+        z = tsidm.state_encoder((data["observation"] - tsidm.obs_loc) / tsidm.obs_scale)
+        z_next = tsidm.state_encoder((data["next", "observation"] - tsidm.obs_loc) / tsidm.obs_scale)
+    step = ((z_next - z) ** 2).sum(-1).mean().sqrt().item()
+    rms = ((z - z.mean(0)) ** 2).sum(0).div(z.shape[0] - 1).mean().sqrt().item()
+    assert abs(stats["latent_step_rms"] - step) < 1e-5 * step
+    assert abs(stats["latent_rms"] - rms) < 1e-5 * rms
