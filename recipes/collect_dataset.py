@@ -26,7 +26,7 @@ import argparse
 import importlib
 from collections.abc import Sequence
 
-from torchrl_tels.data import collect_minari_dataset
+from torchrl_tels.collection import collect_minari_dataset
 
 
 def load_policy(spec: str):

@@ -26,11 +26,8 @@ import argparse
 import time
 from collections.abc import Sequence
 
-from torchrl_tels.data.pointmaze import (
-    MAZE_ENV_IDS,
-    collect_pointmaze_dataset,
-    pointmaze_task_name,
-)
+from torchrl_tels.collection import collect_pointmaze_dataset
+from torchrl_tels.envs.pointmaze import MAZE_ENV_IDS, pointmaze_task_name
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:

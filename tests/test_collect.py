@@ -14,7 +14,8 @@ import pytest
 import torch
 from tensordict.nn import TensorDictModule
 
-from torchrl_tels.data import collect_minari_dataset, load_dataset
+from torchrl_tels.collection import collect_minari_dataset
+from torchrl_tels.data import load_dataset
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

@@ -49,6 +49,7 @@ from hydra import compose, initialize_config_dir
 
 # Registers the gym env and the "pointmass-goal" task (also done by `import torchrl_tels.envs`).
 import torchrl_tels.envs.point_mass as point_mass
+from torchrl_tels.collection import make_point_mass_dataset
 
 pytestmark = pytest.mark.slow
 
@@ -88,7 +89,7 @@ def run_point_mass(workdir: Path, seed: int, extra_overrides=()) -> tuple[float,
     The learned return is the median return of the last ``eval.last_n`` evaluations.
     """
     data_path = workdir / "pointmass.npz"
-    best_in_data = point_mass.make_point_mass_dataset(data_path, N_TRANSITIONS, seed=seed)
+    best_in_data = make_point_mass_dataset(data_path, N_TRANSITIONS, seed=seed)
     recipe = _load_recipe()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("config", overrides=[

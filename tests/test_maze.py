@@ -15,8 +15,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchrl_tels.data import delete_regions, get_task, load_dataset, normalized_score
-from torchrl_tels.data import pointmaze, shared_datasets_dir
+from torchrl_tels.data import delete_regions, load_dataset
+from torchrl_tels.envs import get_task, normalized_score
+from torchrl_tels.collection import pointmaze as maze_collection
+from torchrl_tels.data import shared_datasets_dir
+from torchrl_tels.envs import pointmaze
 from torchrl_tels.envs import antmaze
 
 # ../shared/datasets beside the checkout, or $TORCHRL_TELS_SHARED_DATASETS.
@@ -182,7 +185,7 @@ def test_delete_regions_antmaze_por_box():
 @needs_robotics
 def test_waypoint_controller_reaches_random_goals():
     env = pointmaze.make_pointmaze_env("UMaze", continuing_task=False)
-    controller = pointmaze.WaypointController(env)
+    controller = maze_collection.WaypointController(env)
     reached, lengths = 0, []
     for seed in range(10):
         observation, _ = env.reset(seed=seed)
@@ -200,7 +203,7 @@ def test_waypoint_controller_reaches_random_goals():
 @needs_robotics
 def test_waypoint_controller_path():
     env = pointmaze.make_pointmaze_env("UMaze")
-    controller = pointmaze.WaypointController(env)
+    controller = maze_collection.WaypointController(env)
     maze = env.unwrapped.maze
     start, goal = maze.cell_rowcol_to_xy((3, 1)), maze.cell_rowcol_to_xy((1, 1))
     # From the bottom-left cell the path to the top-left one goes right first.
@@ -239,7 +242,7 @@ def _minari_columns(dataset_id):
 @needs_robotics
 def test_pointmaze_dataset_round_trip(minari_root):
     dataset_id = "test/pointmaze/umaze-v0"
-    dataset = pointmaze.collect_pointmaze_dataset(dataset_id, "UMaze", n_steps=1500, seed=3)
+    dataset = maze_collection.collect_pointmaze_dataset(dataset_id, "UMaze", n_steps=1500, seed=3)
     assert dataset.total_steps == 1500
     data = load_dataset(dataset_id)
     assert len(data) == 1500
@@ -277,7 +280,7 @@ def test_pointmaze_dataset_round_trip(minari_root):
     # Noiseless data: every stored action is the controller's on the stored
     # observation, so the policy saw the right goal after every arrival.
     env = pointmaze.make_pointmaze_env("UMaze")
-    controller = pointmaze.WaypointController(env)
+    controller = maze_collection.WaypointController(env)
     env.close()
     obs64 = raw["obs"]
     expected = np.stack(
@@ -304,7 +307,7 @@ def test_pointmaze_dataset_round_trip(minari_root):
 @needs_robotics
 def test_pointmaze_continuous_noisy(minari_root):
     dataset_id = "test/pointmaze/continuous-v0"
-    pointmaze.collect_pointmaze_dataset(
+    maze_collection.collect_pointmaze_dataset(
         dataset_id, "UMaze", n_steps=600, seed=0, action_noise=0.5, split_at_goals=False
     )
     data = load_dataset(dataset_id)
@@ -319,13 +322,13 @@ def test_pointmaze_continuous_noisy(minari_root):
     assert data["action"].abs().max() <= 1.0
 
     with pytest.raises(ValueError, match="already exists"):
-        pointmaze.collect_pointmaze_dataset(dataset_id, "UMaze", n_steps=10)
+        maze_collection.collect_pointmaze_dataset(dataset_id, "UMaze", n_steps=10)
 
 
 @needs_robotics
 def test_shortest_path_joins_free_neighbouring_cells():
     env = pointmaze.make_pointmaze_env("Medium")
-    controller = pointmaze.WaypointController(env)
+    controller = maze_collection.WaypointController(env)
     start, goal = pointmaze.FIXED_TASK_CELLS["Medium"]
     path = controller.shortest_path(start, goal)
     grid = np.array(env.unwrapped.maze.maze_map)

@@ -441,7 +441,7 @@ def test_is_user_error():
         validate_config(compose_cfg("run_dir=x", "value.gamma=2"))
     assert is_user_error(info.value)
     with pytest.raises(ValueError) as info:  # our own ValueError (an unknown task)
-        from torchrl_tels.data import get_task
+        from torchrl_tels.envs import get_task
 
         get_task("no-such-task")
     assert is_user_error(info.value)

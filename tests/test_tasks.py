@@ -9,15 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-import torchrl_tels.data.tasks as tasks_module
-from torchrl_tels.data import (
-    Task,
-    get_task,
-    list_tasks,
-    load_dataset,
-    normalized_score,
-    register_task,
-)
+import torchrl_tels.envs.tasks as tasks_module
+from torchrl_tels.data import load_dataset
+from torchrl_tels.envs import get_task, list_tasks, normalized_score, register_task, Task
 
 SHARED_D4RL = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "d4rl-10k"
 

@@ -9,11 +9,9 @@ from typing import Any
 
 import torch
 
+from torchrl_tels.errors import CheckpointError
+
 __all__ = ["CheckpointError", "atomic_save", "file_sha256", "load_checkpoint"]
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint file is missing, unreadable, not one of ours, or made for another setup."""
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -10,11 +10,13 @@ from typing import Any, Mapping
 from omegaconf import OmegaConf
 
 from torchrl_tels.data.subsets import SUBSET_MODES
+from torchrl_tels.errors import ConfigError
 
 __all__ = [
     "ConfigError",
     "RESUMABLE_KEYS",
     "check_precision_supported",
+    "check_folder_creatable",
     "check_same_run",
     "check_writable_folder",
     "training_config",
@@ -32,10 +34,6 @@ RESUMABLE_KEYS = ("run_dir", "resume", "threads", "logger", "checkpoint")
 ADDED_OPTIONS = {
     ("tsidm", "beta_selection"): ("weighted", lambda cfg: cfg.get("tsidm", {}).get("beta") == "auto"),
 }
-
-
-class ConfigError(ValueError):
-    """A config value is out of range or of the wrong kind."""
 
 
 def _number(cfg, path: str) -> float:
@@ -113,7 +111,7 @@ def validate_config(cfg) -> None:
         ):
             raise ConfigError(f"{path} must be a list of positive integers (layer widths), got {value!r}.")
     positive_ints = [
-        "tsidm.batch_size", "tsidm.epochs", "optim.steps", "optim.batch_size", "eval.interval",
+        "tsidm.batch_size", "tsidm.epochs", "policy.steps", "policy.batch_size", "eval.interval",
         "eval.episodes", "eval.last_n", "eval.max_steps", "logger.log_interval", "checkpoint.interval",
     ]
     optional = ["tsidm.steps", "tsidm.latent_state_dim", "tsidm.latent_action_dim", "dataset.size", "threads"]
@@ -214,6 +212,15 @@ def check_same_run(saved: Mapping | None, current: Mapping, where: str) -> None:
             f"{where} was made by a run with another config ({shown}); resume=true needs the "
             f"same settings (only {', '.join(RESUMABLE_KEYS)} may change), or choose a new run_dir."
         )
+
+
+def check_folder_creatable(folder: str | os.PathLike, name: str = "run_dir") -> Path:
+    """Checks, without creating anything, that ``folder`` exists writable or can be created."""
+    folder = Path(folder).absolute()
+    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
+    if existing is None or not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{name} {folder} is not writable: {existing} is not a writable folder.")
+    return folder
 
 
 def check_writable_folder(folder: str | os.PathLike, name: str = "run_dir") -> Path:

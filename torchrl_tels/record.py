@@ -96,3 +96,61 @@ class RunLogger:
                 self.wandb.experiment.finish()
             except Exception as err:
                 self._drop_wandb(err)
+
+
+def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm_steps: int, policy_steps: int) -> dict:
+    """Writes ``results.json`` and the PNG plots of a finished run; returns the results.
+
+    The score is the mean of the last ``eval.last_n`` evaluations (Table 1 reads
+    the last 10 of 20); ``second_half_score_mean`` averages the later half of all
+    evaluations. ``diagnostics`` holds what shows whether T-symmetry did
+    anything: the latent scale, the guide's T-symmetry share and proposed step.
+    """
+    import torch
+
+    from torchrl_tels.training import plot_curves, write_json
+
+    run_dir = Path(run_dir)
+    evaluations, wall = run.evaluations, run.wall
+    last = evaluations[-cfg.eval.last_n:]
+    final = torch.tensor([e["score"] for e in last])
+    later = evaluations[len(evaluations) // 2:]
+    n_candidates = len(run.beta_results or [None])
+    results = {
+        "dataset": str(cfg.dataset.name),
+        "task": task.name,
+        "env": task.env_id,
+        "score_kind": "D4RL normalized score" if task.has_reference_scores else "undiscounted return",
+        "seed": cfg.seed,
+        "beta": beta,
+        "beta_results": run.beta_results,
+        "final_normalized_score_mean": final.mean().item(),
+        "final_normalized_score_std": final.std(unbiased=False).item(),
+        "final_over_last_n_evaluations": len(last),
+        "second_half_score_mean": sum(e["score"] for e in later) / max(len(later), 1),
+        "evaluations": evaluations,
+        "diagnostics": {
+            **latent_stats,
+            "tsidm_history": {k: v for k, v in run.tsidm_history.items() if k.startswith("latent")},
+            "guide_history": {k: v for k, v in run.policy_history.items()
+                              if k in ("guide/tsym_to_state_ratio", "guide/guide_step_rms", "guide/loss_tsym",
+                                       "guide/loss_guide_state", "value/value_mean")},
+        },
+        "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall.get("eval_s", 0.0)},
+        "steps_per_s": {
+            "tsidm": tsidm_steps * n_candidates / wall["tsidm_s"] if wall.get("tsidm_s") else None,
+            "policy_including_eval": policy_steps / wall["policy_s"] if policy_steps else None,
+            "policy_excluding_eval": policy_steps / max(wall["policy_s"] - wall.get("eval_s", 0.0), 1e-9)
+            if policy_steps else None,
+        },
+    }
+    write_json(run_dir / "results.json", results)
+    plot_curves(run.tsidm_history, run_dir / "tsidm_losses.png",
+                title="TS-IDM training loss per term (unweighted) and latent scale", logy=True)
+    plot_curves({k: v for k, v in run.policy_history.items() if "loss" in k or "ratio" in k},
+                run_dir / "policy_losses.png", title="latent value and guide losses; T-symmetry share", logy=True)
+    plot_curves({"score": [(e["step"], e["score"]) for e in evaluations]}, run_dir / "eval_scores.png",
+                title=f"TELS on {cfg.dataset.name}", ylabel=results["score_kind"])
+    print(f"final score {results['final_normalized_score_mean']:.1f} ± {results['final_normalized_score_std']:.1f} "
+          f"(mean of last {len(last)} evaluations; {results['score_kind']}); outputs in {run_dir}")
+    return results

@@ -11,9 +11,8 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_tels.checkpoint import atomic_save, CheckpointError, load_checkpoint
-from torchrl_tels.config import ConfigError
-from torchrl_tels.data.datasets import DatasetError
+from torchrl_tels.checkpoint import atomic_save, load_checkpoint
+from torchrl_tels.errors import NonFiniteLossError, TelsError
 
 __all__ = [
     "NonFiniteLossError",
@@ -32,11 +31,6 @@ __all__ = [
 ]
 
 TRAINING_STATE_FORMAT = "torchrl_tels.training_state/v1"
-
-
-class NonFiniteLossError(FloatingPointError):
-    """A loss term, or a tensor about to be checkpointed, became NaN or inf: the run stops and
-    the last good checkpoint stays as it was."""
 
 
 def sum_losses(losses: TensorDictBase) -> torch.Tensor:
@@ -79,22 +73,8 @@ def check_finite_state(state: Any, what: str) -> None:
 
 
 def is_user_error(err: BaseException) -> bool:
-    """Whether ``err`` is a deliberate report about the user's input, to be shown as one line.
-
-    That is a :class:`ConfigError`, :class:`DatasetError`, :class:`CheckpointError`
-    or :class:`NonFiniteLossError`, or a ``ValueError`` raised by torchrl_tels
-    itself (an unknown task, a too-large subset...). Anything raised from
-    deeper down (torch, a bug) is not: its traceback is what is needed.
-    """
-    if isinstance(err, (ConfigError, DatasetError, CheckpointError, NonFiniteLossError)):
-        return True
-    if not isinstance(err, ValueError) or err.__traceback__ is None:
-        return False
-    tb = err.__traceback__
-    while tb.tb_next is not None:
-        tb = tb.tb_next
-    package = Path(__file__).resolve().parent
-    return package in Path(tb.tb_frame.f_code.co_filename).resolve().parents
+    """Whether ``err`` is a deliberate report about the user's input, to be shown as one line."""
+    return isinstance(err, TelsError)
 
 
 def get_rng_state() -> dict[str, Any]:

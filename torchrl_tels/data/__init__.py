@@ -1,6 +1,5 @@
-"""Offline data for TELS: datasets, replay buffers, subsets and tasks."""
+"""Offline data for TELS: datasets, replay buffers and subsets. It knows no algorithm and no environment."""
 
-from torchrl_tels.data.collect import collect_minari_dataset
 from torchrl_tels.data.datasets import (
     D4RL_REQUIRED_KEYS,
     EMBEDDED_DATASET,
@@ -20,38 +19,21 @@ from torchrl_tels.data.subsets import (
     subset_dataset,
     subset_trajectories,
 )
-from torchrl_tels.data.tasks import (
-    D4RL_REFERENCE_SCORES,
-    Task,
-    get_task,
-    list_tasks,
-    normalized_score,
-    register_task,
-)
 
 __all__ = [
-    "D4RL_REFERENCE_SCORES",
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
     "PAPER_SUBSET_SIZES",
     "SUBSET_MODES",
     "DatasetError",
-    "Task",
-    "collect_minari_dataset",
     "delete_regions",
     "embedded_dataset_path",
-    "get_task",
-    "list_tasks",
     "load_dataset",
     "make_offline_replay_buffer",
     "minari_dataset_to_tensordict",
-    "normalized_score",
     "points_in_boxes",
-    "register_task",
     "shared_datasets_dir",
     "subsample_transitions",
     "subset_dataset",
     "subset_trajectories",
 ]
-
-from torchrl_tels.data import pointmaze  # noqa: E402,F401  (registers the PointMaze eval envs and tasks)

@@ -46,6 +46,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from torchrl_tels.errors import DatasetError
+
 if TYPE_CHECKING:
     from importlib.resources.abc import Traversable
 
@@ -82,14 +84,6 @@ SHARED_DATASETS_ENV = "TORCHRL_TELS_SHARED_DATASETS"
 _SHARED_SUBDIRS = ("d4rl-10k",)
 
 _FILE_SUFFIXES = (".npz", ".hdf5", ".h5")
-
-
-class DatasetError(ValueError):
-    """A dataset could not be found, read or validated.
-
-    The message names the source and the problem (missing key, mismatched
-    lengths, non-finite values, ...), so it can be shown to a user as is.
-    """
 
 
 # --------------------------------------------------------------------------- #
@@ -164,6 +158,32 @@ def _minari_local_path(dataset_id: str) -> Path:
     from minari.storage.datasets_root_dir import get_dataset_path
 
     return Path(get_dataset_path(dataset_id))
+
+
+def recorded_env_id(source: DatasetSource) -> str | None:
+    """The Gymnasium id of the environment a local Minari dataset recorded, else ``None``.
+
+    Lets a user's own dataset be evaluated where it was collected. Prefers the
+    dataset's evaluation env over its collection env, as Minari does.
+    """
+    if not isinstance(source, str) or Path(source).suffix in (".npz", ".hdf5", ".h5"):
+        return None
+    try:
+        local_path = _minari_local_path(source)
+    except Exception:  # minari missing, or not an id Minari can parse
+        return None
+    if not (local_path / "data").is_dir():
+        return None
+    import minari
+
+    try:
+        dataset = minari.load_dataset(source)
+    except Exception:
+        return None
+    for spec in (getattr(dataset.spec, "eval_env_spec", None), getattr(dataset.spec, "env_spec", None)):
+        if spec is not None and getattr(spec, "id", None):
+            return spec.id
+    return None
 
 
 # --------------------------------------------------------------------------- #

@@ -40,7 +40,7 @@ def _generator(seed: int) -> torch.Generator:
 
 def _check_size(data: TensorDictBase, size: int) -> None:
     if not 0 < size <= len(data):
-        raise ValueError(
+        raise DatasetError(
             f"size must be in (0, {len(data)}] for a dataset of {len(data)} "
             f"transitions, got {size}."
         )

@@ -1,6 +1,29 @@
-from torchrl_tels.envs import antmaze  # noqa: F401  (registers torchrl_tels/AntMazeUMazeD4RL-v0)
-from torchrl_tels.envs import point_mass  # noqa: F401  (registers torchrl_tels/PointMassGoal-v0)
+"""Evaluation environments and tasks: the one home of task names, env ids and reference scores.
+
+Importing this package registers every task the library ships (D4RL locomotion
+and AntMaze, PointMaze, the point-mass task) and their Gymnasium environments.
+"""
+from torchrl_tels.envs.tasks import (
+    D4RL_REFERENCE_SCORES,
+    get_task,
+    list_tasks,
+    normalized_score,
+    register_task,
+    Task,
+)
+from torchrl_tels.envs import antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
 from torchrl_tels.envs.evaluation import evaluate_policy, make_eval_env, rollout_episodes
 from torchrl_tels.envs.transforms import TSIDMEncoderTransform
 
-__all__ = ["TSIDMEncoderTransform", "evaluate_policy", "make_eval_env", "rollout_episodes"]
+__all__ = [
+    "D4RL_REFERENCE_SCORES",
+    "TSIDMEncoderTransform",
+    "Task",
+    "evaluate_policy",
+    "get_task",
+    "list_tasks",
+    "make_eval_env",
+    "normalized_score",
+    "register_task",
+    "rollout_episodes",
+]

@@ -54,7 +54,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from torchrl_tels.data.tasks import D4RL_REFERENCE_SCORES, Task, register_task
+from torchrl_tels.envs.tasks import D4RL_REFERENCE_SCORES, Task, register_task
 
 __all__ = [
     "ACTION_SCALE",
@@ -367,7 +367,7 @@ def register_antmaze_tasks() -> list[Task]:
     Reference scores are D4RL's antmaze ones (0 and 1), so the normalized
     score is the success rate times 100. ``-<n>k`` variants
     (``"antmaze-umaze-v0-10k"``) resolve to these tasks through
-    :func:`~torchrl_tels.data.get_task`. Replaces earlier registrations of the
+    :func:`~torchrl_tels.envs.get_task`. Replaces earlier registrations of the
     same names.
     """
     ref_min, ref_max = D4RL_REFERENCE_SCORES["antmaze"]

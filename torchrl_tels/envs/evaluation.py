@@ -9,6 +9,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, GymEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_tels.errors import TaskError
+
 __all__ = ["make_eval_env", "evaluate_policy", "rollout_episodes"]
 
 
@@ -17,7 +19,7 @@ def make_eval_env(env_id: str, **kwargs) -> GymEnv:
     try:
         return GymEnv(env_id, **kwargs)
     except Exception as err:
-        raise ValueError(f"cannot create the evaluation env {env_id!r}: {type(err).__name__}: {err}") from None
+        raise TaskError(f"cannot create the evaluation env {env_id!r}: {type(err).__name__}: {err}") from None
 
 
 @torch.no_grad()

@@ -12,6 +12,7 @@ from tensordict.nn import dispatch
 from torchrl.data import Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
+from torchrl_tels.modules.actors import LATENT_KEY
 from torchrl_tels.modules.tsidm import TSIDM
 
 __all__ = ["TSIDMEncoderTransform"]
@@ -125,7 +126,7 @@ class TSIDMEncoderTransform(Transform):
             in_keys = ["observation"]
         in_keys = _as_key_list(in_keys)
         if out_keys is None:
-            out_keys = ["latent"] if len(in_keys) == 1 else [_latent_key(key) for key in in_keys]
+            out_keys = [LATENT_KEY] if len(in_keys) == 1 else [_latent_key(key) for key in in_keys]
         out_keys = _as_key_list(out_keys)
         if len(in_keys) != len(out_keys):
             raise ValueError(

@@ -6,6 +6,13 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 
+#: Raised when gamma is passed to the constructor: torchrl losses take it in make_value_estimator.
+GAMMA_IN_CONSTRUCTOR = (
+    "gamma is no longer a constructor argument of torchrl losses: pass it with "
+    "loss.make_value_estimator(gamma=...)."
+)
+
+
 class MissingKeyError(KeyError):
     """A required tensordict key is absent; prints its message without KeyError's quoting."""
 

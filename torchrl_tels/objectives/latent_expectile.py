@@ -9,9 +9,10 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
-from torchrl.objectives.utils import _GAMMA_LMBDA_DEPREC_ERROR, ValueEstimators
+from torchrl.objectives.utils import ValueEstimators
 
-from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin, make_td0_value_estimator
+from torchrl_tels.modules.actors import LATENT_KEY
+from torchrl_tels.objectives._common import checked_get, GAMMA_IN_CONSTRUCTOR, LazyInKeysMixin, make_td0_value_estimator
 
 __all__ = ["LatentExpectileLoss", "expectile_loss"]
 
@@ -74,7 +75,7 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
                 Defaults to ``"terminated"``.
         """
 
-        latent: NestedKey = "latent"
+        latent: NestedKey = LATENT_KEY
         value: NestedKey = "state_value"
         value_target: NestedKey = "value_target"
         reward: NestedKey = "reward"
@@ -101,7 +102,7 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
         self._in_keys = None
         super().__init__()
         if gamma is not None:
-            raise TypeError(_GAMMA_LMBDA_DEPREC_ERROR)
+            raise TypeError(GAMMA_IN_CONSTRUCTOR)
         expectile = float(expectile)
         if not (math.isfinite(expectile) and 0.0 < expectile < 1.0):
             raise ValueError(f"LatentExpectileLoss: expectile must lie in (0, 1), got {expectile}.")

@@ -9,11 +9,11 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import dispatch, TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
-from torchrl.objectives.utils import _GAMMA_LMBDA_DEPREC_ERROR, ValueEstimators
+from torchrl.objectives.utils import ValueEstimators
 
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 from torchrl_tels.modules.tsidm import squared_norm, TSIDM
-from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin, make_td0_value_estimator
+from torchrl_tels.objectives._common import checked_get, GAMMA_IN_CONSTRUCTOR, LazyInKeysMixin, make_td0_value_estimator
 
 __all__ = ["TSymGuideLoss", "value_scale"]
 
@@ -139,7 +139,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         self._in_keys = None
         super().__init__()
         if gamma is not None:
-            raise TypeError(_GAMMA_LMBDA_DEPREC_ERROR)
+            raise TypeError(GAMMA_IN_CONSTRUCTOR)
         if mode not in GUIDE_MODES:
             raise ValueError(f"TSymGuideLoss: mode must be one of {GUIDE_MODES}, got {mode!r}.")
         checks = [("alpha", alpha, 0.0), ("eta", eta, 0.0), ("max_weight", max_weight, 1e-12),

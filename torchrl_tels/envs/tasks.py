@@ -20,6 +20,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TypeVar
 
+from torchrl_tels.errors import TaskError
+
 __all__ = [
     "Task",
     "D4RL_REFERENCE_SCORES",
@@ -37,10 +39,11 @@ class Task:
     Attributes:
         name: dataset name the task was looked up with.
         env_id: Gymnasium id of the evaluation environment.
-        ref_min_score: return of a random policy (D4RL ``REF_MIN_SCORE``).
-        ref_max_score: return of an expert policy (D4RL ``REF_MAX_SCORE``).
-        observation_dim: size of the (flattened) observation in the dataset.
-        action_dim: size of the action.
+        ref_min_score: return of a random policy (D4RL ``REF_MIN_SCORE``); ``None``
+            for a task without reference scores (its results are raw returns).
+        ref_max_score: return of an expert policy (D4RL ``REF_MAX_SCORE``), or ``None``.
+        observation_dim: size of the (flattened) observation in the dataset, if known.
+        action_dim: size of the action, if known.
         max_episode_steps: episode limit used for evaluation.
         dataset: source to pass to :func:`~torchrl_tels.data.load_dataset`
             (defaults to ``name``).
@@ -48,15 +51,22 @@ class Task:
 
     name: str
     env_id: str
-    ref_min_score: float
-    ref_max_score: float
-    observation_dim: int
-    action_dim: int
+    ref_min_score: float | None
+    ref_max_score: float | None
+    observation_dim: int | None
+    action_dim: int | None
     max_episode_steps: int | None = None
     dataset: str | None = None
 
+    @property
+    def has_reference_scores(self) -> bool:
+        """Whether :func:`normalized_score` is defined for this task."""
+        return self.ref_min_score is not None and self.ref_max_score is not None
+
     def __post_init__(self) -> None:
-        if not self.ref_max_score > self.ref_min_score:
+        if (self.ref_min_score is None) != (self.ref_max_score is None):
+            raise ValueError(f"Task {self.name!r}: give both reference scores or neither.")
+        if self.has_reference_scores and not self.ref_max_score > self.ref_min_score:
             raise ValueError(
                 f"Task {self.name!r}: ref_max_score ({self.ref_max_score}) must be "
                 f"greater than ref_min_score ({self.ref_min_score})."
@@ -142,7 +152,7 @@ def get_task(name: str) -> Task:
         base = _TASKS.get(match["base"]) or _TASKS.get(match["base"].lower())
         if base is not None:
             return dataclasses.replace(base, name=name, dataset=name)
-    raise ValueError(
+    raise TaskError(
         f"Unknown task {name!r}. Known tasks (a '-10k'-style suffix is also "
         f"accepted): {', '.join(list_tasks())}. Use register_task() to add one."
     )
@@ -165,6 +175,8 @@ def normalized_score(task: Task | str, episode_return: ScoreT) -> ScoreT:
     """
     if isinstance(task, str):
         task = get_task(task)
+    if not task.has_reference_scores:
+        raise TaskError(f"task {task.name!r} has no reference scores, so returns cannot be normalized.")
     scale = task.ref_max_score - task.ref_min_score
     return 100.0 * (episode_return - task.ref_min_score) / scale
 

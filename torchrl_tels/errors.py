@@ -1,0 +1,39 @@
+"""The errors torchrl_tels raises about a user's input.
+
+Every one derives from :class:`TelsError`: the recipe shows such an error as one
+``error:`` line and exits with code 2, while anything else (a bug, an error deep
+in torch) keeps its traceback. Each also derives from the builtin a caller
+would expect (``ValueError``, ``RuntimeError``, ...).
+"""
+from __future__ import annotations
+
+__all__ = ["CheckpointError", "ConfigError", "DatasetError", "NonFiniteLossError", "TaskError", "TelsError"]
+
+
+class TelsError(Exception):
+    """A deliberate report about the user's input; its message names the problem."""
+
+
+class ConfigError(TelsError, ValueError):
+    """A config value is out of range or of the wrong kind."""
+
+
+class DatasetError(TelsError, ValueError):
+    """A dataset could not be found, read or validated.
+
+    The message names the source and the problem (missing key, mismatched
+    lengths, non-finite values, ...), so it can be shown to a user as is.
+    """
+
+
+class TaskError(TelsError, ValueError):
+    """An unknown task, or an evaluation environment that cannot be built."""
+
+
+class CheckpointError(TelsError, RuntimeError):
+    """A checkpoint file is missing, unreadable, not one of ours, or made for another setup."""
+
+
+class NonFiniteLossError(TelsError, FloatingPointError):
+    """A loss term, or a tensor about to be checkpointed, became NaN or inf: the run stops and
+    the last good checkpoint stays as it was."""

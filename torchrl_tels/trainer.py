@@ -1,0 +1,438 @@
+"""The pieces of Algorithm 1 that the recipe, the baselines and the benchmarks build alike.
+
+``recipes/tels_offline.py`` reads as Algorithm 1 because the construction lives
+here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
+
+* :func:`make_data`: the dataset, its subset or deleted regions, and the task it
+  is evaluated on, all validated before anything is written;
+* :class:`RunState`: everything a killed run needs to continue, saved as one
+  typed record with :meth:`RunState.save` / :meth:`RunState.load`;
+* :func:`make_stage1` / :func:`fit_tsidm`: the TS-IDM and Eq. (7);
+* :func:`make_stage2`: the latent value (Eq. 8), the guide (Eq. 9/10), their
+  optimizers and the actor of Eq. (11);
+* :func:`evaluate`: deterministic episodes with the diagnostics of a frozen policy.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import tqdm
+from omegaconf import OmegaConf
+from tensordict import TensorDictBase
+from torchrl.objectives import SoftUpdate
+
+from torchrl_tels.config import check_same_run, training_config
+from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
+from torchrl_tels.data.datasets import recorded_env_id
+from torchrl_tels.diagnostics import is_frozen, latent_statistics, rollout_statistics
+from torchrl_tels.envs import get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform
+from torchrl_tels.errors import DatasetError, TaskError
+from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
+from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
+from torchrl_tels.training import (
+    check_finite,
+    check_finite_state,
+    get_rng_state,
+    load_training_state,
+    save_training_state,
+    set_rng_state,
+    sum_losses,
+)
+
+__all__ = [
+    "RunState",
+    "Stage2",
+    "TSIDM_TERMS",
+    "autocast",
+    "evaluate",
+    "fit_tsidm",
+    "load_pretrained_tsidm",
+    "make_data",
+    "make_stage1",
+    "make_stage2",
+    "make_tsidm",
+    "resolve_task",
+    "tsidm_steps",
+]
+
+TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_sum", "latent_rms", "latent_step_rms")
+# App. B.5 picks beta by "the lowest TS-IDM training loss": "unweighted" compares the four terms'
+# sum (ell_sum), "weighted" Eq. (7) itself (ell_total), which scales three terms by the candidate.
+SELECTION_KEYS = {"unweighted": "final_sum", "weighted": "final_loss"}
+
+
+def autocast(cfg):
+    """bf16 matmuls on CPU when ``precision=bf16``; fp32 otherwise."""
+    return torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+
+
+def tsidm_steps(cfg, n_transitions: int) -> int:
+    """Stage 1's length: ``tsidm.steps``, or ``tsidm.epochs`` passes over the data (Table 10)."""
+    return cfg.tsidm.steps or cfg.tsidm.epochs * math.ceil(n_transitions / cfg.tsidm.batch_size)
+
+
+# ----------------------------------------------------------------------------- data
+def resolve_task(cfg, source: str) -> Task:
+    """The evaluation task: ``dataset.task`` or the dataset's name, else the env the dataset recorded.
+
+    A Minari dataset records its environment, so a user's own data trains
+    without a registered task; it then has no reference scores, and its
+    results are raw returns.
+    """
+    name = cfg.dataset.task or Path(str(cfg.dataset.name)).stem
+    try:
+        return get_task(name)
+    except TaskError:
+        env_id = None if cfg.dataset.task else recorded_env_id(source)
+        if env_id is None:
+            raise
+        return Task(str(cfg.dataset.name), env_id, None, None, None, None)
+
+
+def _check_fits_env(data: TensorDictBase, task: Task, name: str) -> None:
+    import gymnasium as gym
+    import numpy as np
+
+    try:
+        env = gym.make(task.env_id)
+    except Exception as err:
+        raise TaskError(f"cannot create the evaluation env {task.env_id!r}: {type(err).__name__}: {err}") from None
+    obs_space, act_space = env.observation_space, env.action_space
+    env.close()
+    obs_dim = int(gym.spaces.flatdim(obs_space))
+    obs_size, act_size = data["observation"].shape[-1], data["action"].shape[-1]
+    if obs_dim != obs_size or act_space.shape[-1] != act_size:
+        raise DatasetError(f"dataset {name!r} has observation/action sizes {obs_size}/{act_size} but env "
+                           f"{task.env_id} has {obs_dim}/{act_space.shape[-1]}.")
+    low, high = torch.as_tensor(np.asarray(act_space.low)), torch.as_tensor(np.asarray(act_space.high))
+    actions = data["action"].to(low.dtype)
+    outside = ((actions < low - 1e-6) | (actions > high + 1e-6)).any(-1)
+    if outside.any():
+        raise DatasetError(
+            f"dataset {name!r}: {int(outside.sum())} of {len(outside)} actions lie outside the action bounds of "
+            f"{task.env_id} ([{low.min().item():g}, {high.max().item():g}]); the data span "
+            f"[{actions.min().item():g}, {actions.max().item():g}]. The actor clips to the bounds, so it could "
+            f"never take them: rescale the actions to the env's bounds first.")
+
+
+def make_data(cfg) -> tuple[TensorDictBase, Task]:
+    """The training transitions and their evaluation task, validated (nothing is written)."""
+    name = str(cfg.dataset.name)
+    data = load_dataset(name)
+    if cfg.dataset.size:
+        data = subset_dataset(data, int(cfg.dataset.size), seed=cfg.seed, mode=cfg.dataset.subset)
+    if cfg.dataset.delete_boxes:
+        if max(cfg.dataset.delete_xy) >= data["observation"].shape[-1]:
+            raise DatasetError(f"dataset.delete_xy={list(cfg.dataset.delete_xy)} names a column beyond the "
+                               f"{data['observation'].shape[-1]} observation columns of {name!r}.")
+        # Fig. 3's OOD test: the same seed removes the same transitions for every method.
+        before = len(data)
+        data = delete_regions(data, [tuple(box) for box in cfg.dataset.delete_boxes], cfg.dataset.delete_ratio,
+                              seed=cfg.seed, xy_slice=list(cfg.dataset.delete_xy))
+        print(f"dataset.delete_boxes: deleted {before - len(data)} of {before} transitions, {len(data)} left")
+    task = resolve_task(cfg, name)
+    _check_fits_env(data, task, name)
+    for path in ("tsidm.batch_size", "policy.batch_size"):
+        if OmegaConf.select(cfg, path) > len(data):
+            raise DatasetError(f"dataset {name!r} has {len(data)} transitions, fewer than "
+                               f"{path}={OmegaConf.select(cfg, path)}.")
+    return data, task
+
+
+# ------------------------------------------------------------------------ run state
+@dataclass
+class RunState:
+    """Where a run is in Algorithm 1, and what it has produced so far.
+
+    ``stage`` moves ``"tsidm"`` → ``"policy"`` → ``"done"``; ``candidate`` and
+    ``step`` say where in that stage. Module and optimizer states travel beside
+    it in ``state.pt`` (see :meth:`save`), so a killed run continues where its
+    last checkpoint left it.
+    """
+
+    config: dict
+    stage: str = "tsidm"
+    candidate: int = 0
+    step: int = 0
+    wandb_id: str | None = None
+    wall: dict = field(default_factory=dict)
+    beta_results: list = field(default_factory=list)
+    tsidm_history: dict = field(default_factory=dict)
+    policy_history: dict = field(default_factory=dict)
+    evaluations: list = field(default_factory=list)
+    modules: dict = field(default_factory=dict)
+
+    @classmethod
+    def start(cls, cfg, path: Path) -> "RunState":
+        """A fresh state, or with ``resume=true`` the one in ``path`` (checked to be the same run)."""
+        config = training_config(cfg)
+        if not (cfg.resume and path.exists()):
+            return cls(config=config)
+        saved = load_training_state(path)
+        check_same_run(saved.get("config"), config, f"checkpoint {path}")
+        fields = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in saved.items() if k in fields and k != "config"}, config=config)
+
+    def save(self, path: Path, **modules: Any) -> None:
+        """Writes this state, ``modules`` (state dicts) and the RNG streams atomically."""
+        self.modules = modules
+        save_training_state(path, {**dataclasses.asdict(self), "rng": get_rng_state()} if modules
+                            else dataclasses.asdict(self))
+
+    def resumes(self, stage: str, candidate: int = 0) -> bool:
+        """Whether this state holds a checkpoint inside ``stage`` (and β candidate) to continue."""
+        return self.stage == stage and self.candidate == candidate and self.step > 0 and bool(self.modules)
+
+    def restore(self, path: Path, **modules: Any) -> None:
+        """Loads the saved module states into ``modules`` and the RNG streams (after :meth:`resumes`)."""
+        for name, module in modules.items():
+            module.load_state_dict(self.modules[name])
+        set_rng_state(load_training_state(path)["rng"])
+
+    def time(self, key: str):
+        """A context that adds the wall-clock time it spans to ``wall[key]``."""
+        return _Stopwatch(self.wall, key)
+
+
+class _Stopwatch:
+    def __init__(self, wall: dict, key: str):
+        self.wall, self.key = wall, key
+
+    def __enter__(self):
+        self.start = time.perf_counter() - self.wall.get(self.key, 0.0)
+        return self
+
+    def update(self):
+        self.wall[self.key] = time.perf_counter() - self.start
+
+    def __exit__(self, *exc):
+        self.update()
+
+
+# -------------------------------------------------------------------------- stage 1
+def make_tsidm(cfg, data: TensorDictBase) -> TSIDM:
+    """A fresh TS-IDM of Table 10's shape, with state normalization fitted on ``data``."""
+    t = cfg.tsidm
+    tsidm = TSIDM(
+        data["observation"].shape[-1],
+        data["action"].shape[-1],
+        latent_state_dim=t.latent_state_dim,
+        latent_action_dim=t.latent_action_dim,
+        encoder_cells=t.encoder_cells,
+        decoder_cells=t.decoder_cells,
+        inverse_cells=t.inverse_cells,
+        action_decoder_cells=t.action_decoder_cells,
+        dynamics_cells=t.dynamics_cells,
+        inverse_dropout=t.inverse_dropout,
+        latent_standardization=t.latent_scale == "standardized",
+    )
+    tsidm.fit_state_normalization(data["observation"])
+    return tsidm
+
+
+def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None):
+    """Stage 1 for one β (Eq. 7): a trained TS-IDM, its final losses and its loss history.
+
+    Final losses average the last 10 % of steps, which App. B.5's β rule compares.
+    """
+    t = cfg.tsidm
+    tsidm = make_tsidm(cfg, data)
+    loss_module = TSIDMLoss(tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction,
+                            relative=t.latent_scale == "relative", check_inputs=False)
+    optim = torch.optim.Adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
+    buffer = make_offline_replay_buffer(data, t.batch_size)
+    total = tsidm_steps(cfg, len(data))
+    start, tail, history = 0, [], {key: [] for key in TSIDM_TERMS}
+    if run.resumes("tsidm", run.candidate):
+        run.restore(run_dir / "state.pt", loss=loss_module, optim=optim)
+        start, history, tail = run.step, run.tsidm_history, run.modules["tail"]
+
+    progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
+                         initial=start, total=total, mininterval=2.0)
+    for step in progress:
+        with autocast(cfg):
+            losses = loss_module(buffer.sample())
+        check_finite(losses, f"stage 1 (TS-IDM, beta={beta:g})", step)
+        optim.zero_grad()
+        sum_losses(losses).backward()
+        optim.step()
+        if step >= int(0.9 * total):  # int(): runs under 10 steps still keep their last step
+            tail.append((losses["ell_total"].item(), losses["ell_sum"].item()))
+        if (step + 1) % cfg.logger.log_interval == 0:
+            scalars = {k: losses[k].item() for k in TSIDM_TERMS if k in losses.keys()}
+            for key, value in scalars.items():
+                history[key].append((step + 1, value))
+            if logger is not None:
+                logger.log_scalars({**{f"tsidm/{k}": v for k, v in scalars.items()}, "tsidm/beta": beta},
+                                   step + 1 + run.candidate * total)
+            progress.set_postfix(loss=f"{scalars['ell_total']:.4f}")
+        if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
+            run.step, run.tsidm_history = step + 1, history
+            run.save(run_dir / "state.pt", loss=loss_module.state_dict(), optim=optim.state_dict(), tail=tail)
+    check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total}")
+    if tsidm.latent_standardization:
+        tsidm.fit_latent_standardization(data["observation"])
+    final = {key: sum(pair[i] for pair in tail) / len(tail) for i, key in enumerate(("final_loss", "final_sum"))}
+    return tsidm.eval(), final, history
+
+
+def load_pretrained_tsidm(cfg, data) -> TSIDM | None:
+    """The TS-IDM of ``tsidm.checkpoint`` (checked against the data's sizes), or ``None``."""
+    if not cfg.tsidm.checkpoint:
+        return None
+    return TSIDM.load(cfg.tsidm.checkpoint, observation_dim=data["observation"].shape[-1],
+                      action_dim=data["action"].shape[-1])
+
+
+def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained: TSIDM | None = None) -> TSIDM:
+    """Algorithm 1, lines 1-4: the ``pretrained`` TS-IDM, this run's finished stage 1, or a trained one.
+
+    With ``tsidm.beta=auto`` each candidate is trained and the one with the lowest final
+    training loss is kept (App. B.5); finished candidates survive an interruption.
+    """
+    if pretrained is not None:
+        return pretrained
+    if run.stage != "tsidm":
+        return TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
+                          action_dim=data["action"].shape[-1])
+    candidates = list(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else [float(cfg.tsidm.beta)]
+    key = SELECTION_KEYS[cfg.tsidm.beta_selection]
+    best = None
+    with run.time("tsidm_s") as clock:
+        for candidate, beta in enumerate(candidates):
+            if candidate < len(run.beta_results):
+                continue  # finished before an interruption; its model is in best_tsidm.pt
+            run.candidate = candidate
+            torch.manual_seed(cfg.seed + candidate)
+            model, final, history = fit_tsidm(cfg, data, beta, run, run_dir, logger)
+            run.beta_results.append({"beta": beta, **final})
+            print(f"TS-IDM beta={beta:g}: final training loss {final['final_loss']:.5f} (Eq. 7), "
+                  f"{final['final_sum']:.5f} (unweighted)")
+            if min(r[key] for r in run.beta_results) == final[key]:
+                best = (model, history, beta)
+                model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
+            clock.update()
+            run.candidate, run.step, run.tsidm_history = candidate + 1, 0, {}
+            run.save(run_dir / "state.pt")
+        if best is None:
+            model = TSIDM.load(run_dir / "best_tsidm.pt")
+            best = (model, model.metadata["history"], model.metadata["beta"])
+        tsidm, run.tsidm_history, beta = best
+        tsidm.metadata = {"beta": beta, "dataset": str(cfg.dataset.name), "beta_results": run.beta_results}
+        tsidm.save(run_dir / "tsidm.pt", metadata=tsidm.metadata)
+    print(f"stage 1 done: beta={beta:g}, TS-IDM saved to {run_dir / 'tsidm.pt'}")
+    run.stage, run.candidate, run.step = "policy", 0, 0
+    run.save(run_dir / "state.pt")
+    return tsidm
+
+
+# -------------------------------------------------------------------------- stage 2
+@dataclass
+class Stage2:
+    """Algorithm 1's stage 2: the encoded data, V (Eq. 8), the guide (Eq. 9/10) and the actor (Eq. 11)."""
+
+    buffer: Any
+    value_loss: LatentExpectileLoss
+    guide_loss: TSymGuideLoss
+    value_optim: torch.optim.Optimizer
+    guide_optim: torch.optim.Optimizer
+    target_updater: SoftUpdate
+    actor: Any
+    guide: Any
+    actor_options: dict
+    latent_stats: dict
+
+    def update(self, cfg, batch: TensorDictBase, step: int):
+        """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V."""
+        with autocast(cfg):
+            value_losses = self.value_loss(batch)
+        check_finite(value_losses, "stage 2 (value)", step)
+        self.value_optim.zero_grad()
+        value_losses["loss_value"].backward()
+        self.value_optim.step()
+        with autocast(cfg):
+            guide_losses = self.guide_loss(batch)
+        check_finite(guide_losses, "stage 2 (guide)", step)
+        self.guide_optim.zero_grad()
+        sum_losses(guide_losses).backward()
+        self.guide_optim.step()
+        self.target_updater.step()
+        return value_losses, guide_losses
+
+    def modules(self) -> dict:
+        return {"value_loss": self.value_loss, "guide_loss": self.guide_loss,
+                "value_optim": self.value_optim, "guide_optim": self.guide_optim}
+
+
+def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
+    """Freezes the TS-IDM, encodes the data once (Algorithm 1, line 6) and builds V, π_g and the actor."""
+    tsidm.eval()
+    tsidm.requires_grad_(False)
+    data = data.clone()
+    data["next", "reward"] = cfg.dataset.reward_scale * data["next", "reward"] + cfg.dataset.reward_bias
+    buffer = make_offline_replay_buffer(data, cfg.policy.batch_size, write_transforms=[TSIDMEncoderTransform(tsidm)])
+    latent_dim = tsidm.latent_state_dim
+    latent_stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
+    latent_stats["data_action_std"] = data["action"].std(0).mean().item()
+    print(f"latent scale: RMS spread {latent_stats['latent_rms']:.4g}, RMS step {latent_stats['latent_step_rms']:.4g}")
+    torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
+    value_net = make_latent_value(latent_dim, cfg.value.num_cells)
+    guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells)
+    value_loss = LatentExpectileLoss(value_net, expectile=cfg.value.expectile, check_inputs=False)
+    value_loss.make_value_estimator(gamma=cfg.value.gamma)
+    g = cfg.guide
+    guide_loss = TSymGuideLoss(
+        guide, value_net, tsidm, mode=g.mode, alpha=g.alpha, eta=g.eta, tsym_regularizer=g.tsym_regularizer,
+        tsym_weight=g.tsym_weight, tsym_reference=latent_stats["latent_step_rms"] ** 2 if g.tsym_relative else None,
+        max_weight=g.max_weight, dim_reduction=cfg.tsidm.dim_reduction, check_inputs=False,
+    )
+    guide_loss.make_value_estimator(gamma=cfg.value.gamma)
+    actor_options = {"reencode_proposal": g.reencode_proposal, "inverse_dropout": g.act_with_dropout}
+    return Stage2(
+        buffer=buffer,
+        value_loss=value_loss,
+        guide_loss=guide_loss,
+        target_updater=SoftUpdate(value_loss, tau=cfg.value.target_update_rate),
+        value_optim=torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=cfg.value.lr, fused=True),
+        guide_optim=torch.optim.Adam(guide_loss.parameters(), lr=g.lr, fused=True),
+        actor=make_tels_actor(tsidm, guide, action_spec, **actor_options),
+        guide=guide,
+        actor_options=actor_options,
+        latent_stats=latent_stats,
+    )
+
+
+def score(task: Task, episode_return: float) -> float:
+    """The D4RL normalized score where the task has reference scores, else the raw return."""
+    return normalized_score(task, episode_return) if task.has_reference_scores else episode_return
+
+
+def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict) -> dict:
+    """``eval.episodes`` deterministic episodes (seeded by run seed and step) and their diagnostics.
+
+    Besides the returns and scores, records the guide's proposed latent step and the spread of
+    the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`).
+    """
+    actor.eval()
+    returns, lengths, behaviour = [], [], []
+    for rollout in rollout_episodes(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
+                                    seed=cfg.seed * 100_000 + step):
+        returns.append(rollout["next", "reward"].sum().item())
+        lengths.append(rollout.shape[-1])
+        behaviour.append(rollout_statistics(rollout))
+    scores = [score(task, r) for r in returns]
+    guide_step = sum(b["guide_step_rms"] for b in behaviour) / len(behaviour)
+    action_std = sum(b["action_std"] for b in behaviour) / len(behaviour)
+    return {"step": step, "returns": returns, "lengths": lengths, "scores": scores,
+            "score": sum(scores) / len(scores), "guide_step_rms": guide_step, "action_std": action_std,
+            "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
+                                latent_stats["data_action_std"])}
+
+
