@@ -64,7 +64,7 @@ def train(cfg: DictConfig) -> dict:
         return json.loads((run_dir / "results.json").read_text())
     data, task = make_data(cfg)
     pretrained = load_pretrained_tsidm(cfg, data)
-    if run.step or run.stage != "tsidm":
+    if cfg.resume and (run_dir / "state.pt").exists():
         print(f"resuming {run_dir} at {run.stage} step {run.step}")
 
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""TELS learns (issue 5, item 7): a test that fails when offline RL does not improve on its data.
+"""TELS learns: a test that fails when offline RL does not improve on its data.
 
 The task is :mod:`torchrl_tels.envs.point_mass`: a deterministic 2-D point
 that must reach a goal 1.41 away, rewarded by minus its distance to the goal
@@ -10,9 +10,9 @@ that leads to the goal fastest, i.e. a value function and a policy that
 maximizes it; imitating the data goes nowhere (the second test checks that).
 
 The recipe runs in-process (Hydra's compose API, then the ``@hydra.main``
-function with the composed config) with the ``quick`` preset's network sizes
-and step counts, plus these settings, each the smallest change from the
-defaults that makes the task learnable within the quick preset's budget:
+function with the composed config) with the paper's values (``domain=paper``) and
+the ``smoke`` budget's network sizes and step counts, plus these settings, each the
+smallest change from the defaults that makes the task learnable within that budget:
 
 * ``guide.mode=stochastic guide.alpha=10 value.expectile=0.9``: the paper's
   AntMaze (goal-reaching) guide, Eq. (10), with its Table 11 values. The
@@ -21,10 +21,10 @@ defaults that makes the task learnable within the quick preset's budget:
   the behaviour's aimless mean (returns -40 to -70 in our runs).
 * ``value.gamma=0.9``: the effective horizon of 10 steps matches the task
   (the optimum takes 9). With 0.99 the bootstrapped V does not settle within
-  2000 updates of the quick networks (V drifts to positive values although
+  2000 updates of the smoke networks (V drifts to positive values although
   every reward is negative) and the policy varies from one evaluation to the
   next.
-* ``optim.steps=2000`` with an evaluation every 250 steps; the test reads the
+* ``policy.steps=2000`` with an evaluation every 250 steps; the test reads the
   median return of the last five (steps 1000-2000), so one unlucky
   evaluation cannot decide it. One episode per evaluation: env and policy
   are deterministic, every episode would be the same.
@@ -58,13 +58,14 @@ CONFIG_DIR = REPO_ROOT / "recipes" / "config"
 N_TRANSITIONS = 5000
 # See the module docstring for why each of these differs from the defaults.
 LEARNING_OVERRIDES = [
-    "preset=quick",
+    "domain=paper",
+    "budget=smoke",
     "threads=1",
     "guide.mode=stochastic",
     "guide.alpha=10",
     "value.expectile=0.9",
     "value.gamma=0.9",
-    "optim.steps=2000",
+    "policy.steps=2000",
     "eval.interval=250",
     "eval.episodes=1",
     "eval.max_steps=50",
@@ -111,7 +112,7 @@ def run_point_mass(workdir: Path, seed: int, extra_overrides=()) -> tuple[float,
     return best_in_data, learned, results
 
 
-def test_quick_preset_beats_the_best_trajectory_in_its_data(tmp_path):
+def test_tels_beats_the_best_trajectory_in_its_data(tmp_path):
     start = time.perf_counter()
     best_in_data, learned, results = run_point_mass(tmp_path, seed=0)
     elapsed = time.perf_counter() - start
@@ -132,7 +133,7 @@ def test_imitation_alone_does_not_beat_the_data(tmp_path):
     # Eq. (10), so the guide imitates the behaviour's next states and V plays no
     # part. It must stay below the best trajectory, else the test above would
     # not show that TELS's value maximization does anything.
-    best_in_data, learned, _ = run_point_mass(tmp_path, seed=0, extra_overrides=["guide.alpha=0", "optim.steps=1000"])
+    best_in_data, learned, _ = run_point_mass(tmp_path, seed=0, extra_overrides=["guide.alpha=0", "policy.steps=1000"])
     assert learned < best_in_data, (
         f"imitating the behaviour policy scored {learned:.2f}, not below the data's best {best_in_data:.2f}: "
         "the point-mass data is too easy to show policy improvement."

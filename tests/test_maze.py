@@ -364,8 +364,8 @@ def test_fixed_task_starts_and_ends_in_its_cells():
 
 @needs_robotics
 @needs_antmaze_file
-def test_maze_preset_runs_in_quick_form(tmp_path, capsys):
-    """``preset=[maze,quick]``: Eq. 10 guide with the AntMaze values, POR's box deleted, success-rate score."""
+def test_maze_domain_runs_at_the_smoke_budget(tmp_path, capsys):
+    """``domain=maze budget=smoke``: Eq. 10 guide with the AntMaze values, POR's box deleted, success-rate score."""
     import importlib.util
     import json
     from pathlib import Path
@@ -379,8 +379,8 @@ def test_maze_preset_runs_in_quick_form(tmp_path, capsys):
     spec.loader.exec_module(recipe)
     with initialize_config_dir(str(repo / "recipes" / "config"), version_base="1.3"):
         cfg = compose("config", overrides=[
-            "preset=[maze,quick]", "dataset.name=antmaze-umaze-v0-10k", f"run_dir={tmp_path}",
-            "dataset.delete_boxes=[[5,10,2,7]]", "tsidm.steps=100", "optim.steps=200", "eval.interval=100",
+            "domain=maze", "budget=smoke", "dataset.name=antmaze-umaze-v0-10k", f"run_dir={tmp_path}",
+            "dataset.delete_boxes=[[5,10,2,7]]", "tsidm.steps=100", "policy.steps=200", "eval.interval=100",
             "eval.max_steps=100",
         ])
     threads = torch.get_num_threads()
@@ -393,7 +393,7 @@ def test_maze_preset_runs_in_quick_form(tmp_path, capsys):
     resolved = yaml.safe_load((tmp_path / "config.yaml").read_text())
     assert resolved["guide"]["mode"] == "stochastic" and resolved["guide"]["alpha"] == 10.0
     assert resolved["value"]["expectile"] == 0.9 and resolved["dataset"]["reward_bias"] == -1.0
-    assert resolved["guide"]["num_cells"] == [256, 256]  # quick's small nets on top of maze's values
+    assert resolved["guide"]["num_cells"] == [256, 256]  # the smoke budget's small nets on top of maze's values
     results = json.loads((tmp_path / "results.json").read_text())
     assert len(results["evaluations"]) == 2
     for evaluation in results["evaluations"]:

@@ -1,4 +1,4 @@
-"""Reliability of the TELS recipe and its files (issue 7), part 1: bad input, checkpoint safety, wandb.
+"""Reliability of the TELS recipe and its files, part 1: bad input, checkpoint safety, wandb.
 
 Each bad input ends the run with exit code 2 and one line ``error: <message>``
 on stderr (no traceback), and writes no checkpoint, result or half file. Most
@@ -45,7 +45,7 @@ from torchrl_tels.training import (
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
 CONFIG_DIR = REPO_ROOT / "recipes" / "config"
-SMALL = ["tsidm.steps=2", "optim.steps=2", "eval.max_steps=5"]
+SMALL = ["tsidm.steps=2", "policy.steps=2", "eval.max_steps=5"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -74,7 +74,7 @@ def no_minari_download(monkeypatch):
 
 def compose_cfg(*overrides: str):
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        return compose("config", overrides=["preset=quick", *overrides])
+        return compose("config", overrides=["budget=smoke", *overrides])
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -268,7 +268,7 @@ HYPERPARAMETER_CASES = [
     ("tsidm.beta=-0.5", "tsidm.beta must be >= 0 or 'auto', got -0.5."),
     ("value.expectile=1.0", "value.expectile must lie in (0, 1), got 1.0."),
     ("value.expectile=0", "value.expectile must lie in (0, 1), got 0.0."),
-    ("optim.batch_size=0", "optim.batch_size must be a positive integer, got 0."),
+    ("policy.batch_size=0", "policy.batch_size must be a positive integer, got 0."),
     ("tsidm.batch_size=0", "tsidm.batch_size must be a positive integer, got 0."),
     ("guide.alpha=nan", "guide.alpha must be finite, got nan."),
     ("value.lr=inf", "value.lr must be finite, got inf."),
@@ -308,7 +308,7 @@ def run_cli(tmp_path: Path, *overrides: str, cwd: Path = REPO_ROOT) -> subproces
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
-        [sys.executable, str(RECIPE), "preset=quick", "threads=1", *SMALL, *overrides],
+        [sys.executable, str(RECIPE), "budget=smoke", "threads=1", *SMALL, *overrides],
         cwd=cwd, env=env, capture_output=True, text=True, timeout=120,
     )
 
@@ -549,21 +549,25 @@ def test_write_text_replaces_whole_file_and_leaves_no_temp(tmp_path, monkeypatch
     assert sorted(p.name for p in tmp_path.iterdir()) == ["TABLE.md", "r.json"]
 
 
-def test_presets_choose_the_readings_the_study_measured():
-    """MuJoCo re-encodes the guide's proposal (issue 8, choice 7), weights Eq. (7)'s dynamics
-    terms with beta = 0.01 (choice 5) and Eq. (9)'s value term with alpha = 1 (choice 1), and
-    trains 3k TS-IDM and 5k policy steps (choice 5); AntMaze keeps Eq. (11) as written, the base
-    beta, Table 11's alpha = 10 and the paper's budget."""
+def test_config_groups_compose_domain_and_budget():
+    """The base is the paper; ``domain=mujoco`` departs where README's deviation table says,
+    ``domain=maze`` takes Table 11's AntMaze values, and the budget group only sets lengths."""
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        base = compose("config", overrides=["preset=quick"])
-        mujoco, maze = compose("config"), compose("config", overrides=["preset=maze"])
+        paper = compose("config", overrides=["domain=paper", "budget=paper"])
+        mujoco, maze = compose("config"), compose("config", overrides=["domain=maze", "budget=paper"])
+        smoke = compose("config", overrides=["budget=smoke"])
     assert mujoco.guide.mode == "deterministic" and mujoco.guide.reencode_proposal is True
     assert maze.guide.mode == "stochastic" and maze.guide.reencode_proposal is False
-    assert base.tsidm.beta == 1.0 and mujoco.tsidm.beta == 0.01 and maze.tsidm.beta == 1.0
-    assert base.guide.alpha == 0.01 and mujoco.guide.alpha == 1.0 and maze.guide.alpha == 10.0
-    # The MuJoCo preset trains at the study's budget (choice 5); AntMaze keeps Tables 10-11's.
-    assert (mujoco.tsidm.steps, mujoco.optim.steps, mujoco.eval.interval) == (3000, 5000, 500)
-    assert (maze.tsidm.steps, maze.tsidm.epochs, maze.optim.steps) == (None, 1000, 100_000)
+    assert paper.tsidm.beta == 1.0 and maze.tsidm.beta == 1.0
+    assert paper.guide.alpha == 0.01 and maze.guide.alpha == 10.0
+    assert paper.tsidm.latent_scale == "free" and paper.guide.tsym_relative is False
+    assert (mujoco.tsidm.steps, mujoco.policy.steps, mujoco.eval.interval) == (3000, 5000, 500)
+    assert (paper.tsidm.steps, paper.tsidm.epochs, paper.policy.steps) == (None, 1000, 100_000)
+    assert (maze.tsidm.steps, maze.tsidm.epochs, maze.policy.steps) == (None, 1000, 100_000)
+    # The smoke run exercises the default domain's choices, only smaller and shorter.
+    for section in ("guide", "tsidm", "value"):
+        for key in ("reencode_proposal", "alpha", "beta", "latent_scale", "tsym_relative", "expectile"):
+            if key in mujoco[section]:
+                assert smoke[section][key] == mujoco[section][key], (section, key)
     assert mujoco.eval.last_n == 10 and mujoco.eval.episodes == 10
-    # Everything else in the MuJoCo preset is the paper's base config.
     assert mujoco.value.target_update_rate == 0.05

@@ -1,7 +1,7 @@
-"""Reliability of the TELS recipe (issue 7), part 2: killed runs, determinism, non-finite losses.
+"""Reliability of the TELS recipe, part 2: killed runs, determinism, non-finite losses.
 
 Every run here is a real ``recipes/tels_offline.py`` process on CPU with one
-thread (``OMP_NUM_THREADS=1``, ``threads=1``), the ``quick`` preset shrunk to
+thread (``OMP_NUM_THREADS=1``, ``threads=1``), the paper's values at the ``smoke`` budget, shrunk to
 a few seconds of work. A resumed run must reproduce the uninterrupted run
 bitwise: same ``results.json`` (every evaluation return, the final score, the
 β selection losses), same TS-IDM weights, same logged losses.
@@ -33,12 +33,12 @@ RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
 # Stage 1: two β candidates x 100 steps; stage 2: 200 steps; a checkpoint every 24
 # steps of either stage (so one, at 96, falls in the last 10% of stage 1 whose
 # losses pick β), an evaluation every 50 policy steps. About 10 s a run.
-COMMON = ["preset=quick", "threads=1", "seed=3", "checkpoint.interval=24", "logger.log_interval=10",
+COMMON = ["domain=paper", "budget=smoke", "threads=1", "seed=3", "checkpoint.interval=24", "logger.log_interval=10",
           "eval.episodes=1", "eval.last_n=2", "eval.max_steps=50"]
 RUN = [*COMMON, "tsidm.beta=auto", "tsidm.beta_candidates=[0.1,1.0]", "tsidm.steps=100",
-       "optim.steps=200", "eval.interval=50"]
+       "policy.steps=200", "eval.interval=50"]
 # For the NaN tests: one β, 20 TS-IDM steps, 100 policy steps, no evaluation before the end.
-FAST = [*COMMON, "tsidm.beta=1.0", "tsidm.steps=20", "optim.steps=100", "eval.interval=100"]
+FAST = [*COMMON, "tsidm.beta=1.0", "tsidm.steps=20", "policy.steps=100", "eval.interval=100"]
 # Wall-clock entries differ from run to run; everything else must match bitwise.
 NOT_COMPARED = ("wall_time_s", "steps_per_s")
 
@@ -188,7 +188,7 @@ def driver(tmp_path) -> Path:
 
 # --------------------------------------------------------------------------- tests
 def test_same_seed_same_results_and_wandb_failure_is_harmless(reference, tmp_path):
-    """Determinism, and issue item 6 end to end: a second run with the same seed, whose wandb
+    """Determinism end to end: a second run with the same seed, whose wandb
     (online, no login, no reachable server) fails, gives identical TS-IDM losses (every logged
     term, both β), identical evaluation returns and identical weights, from its CSV log."""
     env = _env(HOME=str(tmp_path / "home"), WANDB_BASE_URL="http://127.0.0.1:9")
@@ -244,7 +244,7 @@ def test_sigkill_at_exact_checkpoints_then_resume(reference, tmp_path, driver):
       must build the same stage-2 networks as a run that trained stage 1 itself.
     """
     run_dir = tmp_path / "run"
-    for at, resuming in [("tsidm,1,0", None), ("tsidm,1,96", "tsidm step 0"), ("policy,None,0", "tsidm step 96")]:
+    for at, resuming in [("tsidm,1,0", None), ("tsidm,1,96", "tsidm step 0"), ("policy,0,0", "tsidm step 96")]:
         extra = ["resume=true"] if resuming else []
         proc = run(run_dir, *extra, driver=(driver, "kill_after_checkpoint", at), check=False)
         assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
@@ -283,10 +283,10 @@ def test_non_finite_weights_are_never_checkpointed(tmp_path, driver):
     proc = run(run_dir, base=FAST, driver=(driver, "inf_grad", "71"), check=False)
     assert proc.returncode == 2
     last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith("error: checkpoint state.pt: guide_loss.") and last.endswith(
+    assert last.startswith("error: checkpoint state.pt: modules.guide_loss.") and last.endswith(
         "holds NaN or inf; it is not written and the last good checkpoint is kept."
     ), proc.stderr[-2000:]
     state = load_training_state(run_dir / "state.pt")
     assert (state["stage"], state["step"]) == ("policy", 48)
     for name in ("value_loss", "guide_loss"):
-        assert all(torch.isfinite(t).all() for t in state[name].values() if t.is_floating_point())
+        assert all(torch.isfinite(t).all() for t in state["modules"][name].values() if t.is_floating_point())

@@ -36,15 +36,8 @@ from torchrl_tels.envs import get_task, normalized_score, rollout_episodes, Task
 from torchrl_tels.errors import DatasetError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
-from torchrl_tels.training import (
-    check_finite,
-    check_finite_state,
-    get_rng_state,
-    load_training_state,
-    save_training_state,
-    set_rng_state,
-    sum_losses,
-)
+from torchrl_tels import training
+from torchrl_tels.training import check_finite, check_finite_state, get_rng_state, set_rng_state, sum_losses
 
 __all__ = [
     "RunState",
@@ -175,7 +168,7 @@ class RunState:
         config = training_config(cfg)
         if not (cfg.resume and path.exists()):
             return cls(config=config)
-        saved = load_training_state(path)
+        saved = training.load_training_state(path)
         check_same_run(saved.get("config"), config, f"checkpoint {path}")
         fields = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in saved.items() if k in fields and k != "config"}, config=config)
@@ -183,8 +176,10 @@ class RunState:
     def save(self, path: Path, **modules: Any) -> None:
         """Writes this state, ``modules`` (state dicts) and the RNG streams atomically."""
         self.modules = modules
-        save_training_state(path, {**dataclasses.asdict(self), "rng": get_rng_state()} if modules
-                            else dataclasses.asdict(self))
+        state = dataclasses.asdict(self)
+        if modules:
+            state["rng"] = get_rng_state()
+        training.save_training_state(path, state)
 
     def resumes(self, stage: str, candidate: int = 0) -> bool:
         """Whether this state holds a checkpoint inside ``stage`` (and β candidate) to continue."""
@@ -194,7 +189,7 @@ class RunState:
         """Loads the saved module states into ``modules`` and the RNG streams (after :meth:`resumes`)."""
         for name, module in modules.items():
             module.load_state_dict(self.modules[name])
-        set_rng_state(load_training_state(path)["rng"])
+        set_rng_state(training.load_training_state(path)["rng"])
 
     def time(self, key: str):
         """A context that adds the wall-clock time it spans to ``wall[key]``."""
