@@ -45,9 +45,6 @@ the last ``eval_last_n`` (10) evaluations.
 from __future__ import annotations
 
 import copy
-import os
-import platform
-import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -58,7 +55,6 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from tensordict.nn.distributions import NormalParamExtractor
 from torch import nn
-import torchrl
 from torchrl.envs import Compose, DoubleToFloat, EnvBase, ObservationNorm, TransformedEnv
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
@@ -232,18 +228,6 @@ def _build_bc(obs_key, obs_dim, action_spec, hp):
 
 
 _BUILDERS = {"iql": _build_iql, "iql_latent": _build_iql, "td3bc": _build_td3bc, "bc": _build_bc}
-
-
-def machine_info() -> dict:
-    """What a speed figure needs next to it."""
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": sys.version.split()[0],
-        "torch": torch.__version__,
-        "torchrl": torchrl.__version__,
-    }
 
 
 def train_baseline(

@@ -6,12 +6,12 @@ path from the evaluation start to the goal are deleted at a given ratio
 TorchRL's ``IQLLoss`` (the IQL paper's maze values) are trained on what is
 left, with the same policy-step budget. Each trained policy is rolled out for
 20 deterministic episodes from the fixed start; the result JSON keeps the
-success rate and every (x, y) path::
+success rate and every (x, y) path. Run from the repository root::
 
-    python benchmarks/ood_deletion.py --setup pointmaze-medium --method tels --ratio 0.7 --seed 0
-    python benchmarks/ood_deletion.py --grid --threads 1     # every missing (setup, method, ratio, seed)
-    python benchmarks/ood_deletion.py --list                 # one command per missing run
-    python benchmarks/ood_deletion.py --report               # OOD.md and one PNG per setup, like Fig. 3
+    python -m benchmarks.ood_deletion --setup pointmaze-medium --method tels --ratio 0.7 --seed 0
+    python -m benchmarks.ood_deletion --grid --threads 1     # every missing (setup, method, ratio, seed)
+    python -m benchmarks.ood_deletion --list                 # one command per missing run
+    python -m benchmarks.ood_deletion --report               # OOD.md and one PNG per setup, like Fig. 3
 
 Setups:
 
@@ -46,14 +46,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from baselines import machine_info, MAZE_HYPERPARAMETERS, train_baseline
-from run_grid import run_recipe, save_figure
+from benchmarks.baselines import MAZE_HYPERPARAMETERS, train_baseline
+from benchmarks.harness import (machine_description, REPO, repo_relative, run_recipe, save_figure, skip_existing,
+                                write_result)
 from torchrl_tels.data import delete_regions, get_task, load_dataset, points_in_boxes
 from torchrl_tels.envs import make_eval_env, rollout_episodes
 from torchrl_tels.modules import load_tels_actor
-from torchrl_tels.training import write_json
+from torchrl_tels.training import write_text
 
-REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RESULTS = REPO / "benchmarks" / "results" / "ood"
 DEFAULT_WORK = REPO / "runs" / "ood"
 
@@ -130,7 +130,9 @@ def result_path(results_dir: Path, setup: str, method: str, ratio: float, seed: 
 
 
 def one_command(args, setup: str, method: str, ratio: float, seed: int) -> list[str]:
-    cmd = [sys.executable, str(Path(__file__).resolve()), f"--setup={setup}", f"--method={method}",
+    """The single-run command of (setup, method, ratio, seed) with this invocation's budget (run from the
+    repository root)."""
+    cmd = [sys.executable, "-m", "benchmarks.ood_deletion", f"--setup={setup}", f"--method={method}",
            f"--ratio={ratio:g}", f"--seed={seed}", f"--steps={args.steps}", f"--tsidm-steps={args.tsidm_steps}",
            f"--results-dir={args.results_dir}", f"--work-dir={args.work_dir}"]
     if args.threads:
@@ -147,8 +149,6 @@ def train_tels(setup: Setup, boxes, ratio: float, seed: int, args):
                  f"run_dir={run_dir}", "resume=true", "logger.wandb_mode=disabled",
                  f"tsidm.steps={args.tsidm_steps}", f"optim.steps={args.steps}", f"eval.interval={args.steps}",
                  "eval.episodes=1", "eval.last_n=1", f"checkpoint.interval={min(args.steps, 5000)}"]
-    if args.threads:
-        overrides.append(f"threads={args.threads}")
     run_recipe(overrides, args.threads)
     env = make_eval_env(get_task(setup.task).env_id)
     actor = load_tels_actor(run_dir / "policy.pt", run_dir / "tsidm.pt", env.action_spec_unbatched)
@@ -168,8 +168,7 @@ def train_iql(setup: Setup, data, seed: int, args):
 
 def run_one(setup_name: str, method: str, ratio: float, seed: int, args) -> Path:
     out = result_path(args.results_dir, setup_name, method, ratio, seed)
-    if out.exists() and not args.force:
-        print(f"skip {setup_name} {method} ratio {ratio:g} seed {seed}: {out} exists", flush=True)
+    if skip_existing(out, args.force):
         return out
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -203,12 +202,11 @@ def run_one(setup_name: str, method: str, ratio: float, seed: int, args) -> Path
                    "batch_size": 256, "rollouts": ROLLOUTS},
         "command": shlex.join(one_command(args, setup_name, method, ratio, seed)),
         "date": started.isoformat(timespec="seconds"), "elapsed_s": time.perf_counter() - start,
-        "machine": machine_info(), "torch_threads": torch.get_num_threads(), **extra,
+        "machine": machine_description(), "torch_threads": torch.get_num_threads(), **extra,
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, record)
-    print(f"== {setup_name} {method} ratio {ratio:g} seed {seed}: success {record['success_rate']:.2f} -> {out}",
-          flush=True)
+    if write_result(out, record, args.force):
+        print(f"== {setup_name} {method} ratio {ratio:g} seed {seed}: success {record['success_rate']:.2f} -> "
+              f"{repo_relative(out)}", flush=True)
     return out
 
 
@@ -243,7 +241,7 @@ def render_report(results_dir: Path) -> Path:
     found = load_results(results_dir)
     lines = ["# OOD deletion test (TELS paper Fig. 3)", "",
              f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} by "
-             "`python benchmarks/ood_deletion.py --report`. Success rate over "
+             "`python -m benchmarks.ood_deletion --report`. Success rate over "
              f"{ROLLOUTS} deterministic rollouts from the fixed start (mean over seeds; n = seeds). "
              "Every run of a setup has the same policy-step budget.", "",
              "| setup | method | budget | " + " | ".join(f"{r:.0%} deleted" for r in RATIOS) + " |",
@@ -303,14 +301,12 @@ def render_report(results_dir: Path) -> Path:
         "and every rollout's (x, y) path.", ""]
     table = results_dir / "OOD.md"
     table.parent.mkdir(parents=True, exist_ok=True)
-    tmp = table.with_name(f".{table.name}.{os.getpid()}.tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, table)
+    write_text(table, "\n".join(lines))
     return table
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.split("\n\n")[0])
     parser.add_argument("--setup", "--setups", action="extend", nargs="+", choices=sorted(SETUPS))
     parser.add_argument("--method", "--methods", action="extend", nargs="+", choices=METHODS)
     parser.add_argument("--ratio", "--ratios", action="extend", nargs="+", type=float)

@@ -6,7 +6,7 @@ reads the steps/s it reports in ``results.json``. It prints median steps/s per
 stage and the wall time of the full paper-budget run those rates imply (Table 10:
 1000 TS-IDM epochs; Table 11: 100k policy steps; 20 evaluations of 10 episodes).
 
-    python benchmarks/recipe_speed.py --threads 2
+    python -m benchmarks.recipe_speed --threads 2
 
 A projection is not a measurement of the full run: BENCHMARKS.md says which is which.
 """
@@ -16,27 +16,21 @@ import argparse
 import json
 import math
 import statistics
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
+from benchmarks.harness import run_recipe
 from torchrl_tels.config import native_bf16_supported
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def run_once(precision: str, threads: int, tsidm_steps: int, policy_steps: int, episodes: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [
-            sys.executable, str(REPO / "recipes" / "tels_offline.py"),
-            f"run_dir={tmp}/run", f"threads={threads}", f"precision={precision}",
+        run_recipe([
+            f"run_dir={tmp}/run", f"precision={precision}",
             f"tsidm.steps={tsidm_steps}", f"optim.steps={policy_steps}",
             f"eval.interval={policy_steps}", f"eval.episodes={episodes}", "eval.last_n=1",
             f"checkpoint.interval={10 * policy_steps}", "logger.wandb_mode=disabled",
-        ]
-        subprocess.run(cmd, check=True, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                       env={"OMP_NUM_THREADS": str(threads), "PATH": "/usr/bin:/bin"})
+        ], threads, quiet=True)
         results = json.loads((Path(tmp) / "run" / "results.json").read_text())
     evaluation = results["evaluations"][-1]
     return {
@@ -47,7 +41,7 @@ def run_once(precision: str, threads: int, tsidm_steps: int, policy_steps: int, 
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--tsidm-steps", type=int, default=300)
@@ -56,7 +50,7 @@ def main():
     parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"])
     args = parser.parse_args()
     if "bf16" in args.precisions and not native_bf16_supported():
-        # the recipe refuses it here (emulated bf16 is tens of times slower): benchmarks/step_floor.py times it
+        # the recipe refuses it here (emulated bf16 is tens of times slower): benchmarks.step_floor times it
         print("bf16 skipped: this CPU has no native bf16 matrix multiplication")
         args.precisions = [p for p in args.precisions if p != "bf16"]
     print(f"recipe at paper widths, hopper-medium-v2 10k, torch threads pinned to {args.threads}; "

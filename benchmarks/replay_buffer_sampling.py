@@ -18,7 +18,7 @@ one thread so the figures do not depend on what else runs on the machine.
 
 Usage::
 
-    python benchmarks/replay_buffer_sampling.py [--repeats 7] [--calls 200]
+    python -m benchmarks.replay_buffer_sampling [--repeats 7] [--calls 200]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def time_per_call(fn: Callable[[], object], calls: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--calls", type=int, default=200)
     args = parser.parse_args()

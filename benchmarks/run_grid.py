@@ -3,13 +3,13 @@
 One command trains and evaluates ONE (method, task, seed) and writes
 ``<results-dir>/<method>/<task>/seed<k>.json`` (temp file + rename); a result
 that exists is skipped unless ``--force``, so a grid can be spread over job
-arrays, wandb sweep agents and several sessions::
+arrays, wandb sweep agents and several machines. Run from the repository root::
 
-    python benchmarks/run_grid.py --method iql --task hopper-medium-v2-10k --seed 0 --threads 2
-    python benchmarks/run_grid.py --method=tels --task=walker2d-medium-v2-10k --seed=1   # wandb's ${args} form
-    python benchmarks/run_grid.py --grid --seed 0 1 2            # every missing combination, one after another
-    python benchmarks/run_grid.py --list --seed 0 1 2 > jobs.txt  # one command per missing run (job arrays)
-    python benchmarks/run_grid.py --table                        # TABLE.md and PNGs from what exists
+    python -m benchmarks.run_grid --method iql --task hopper-medium-v2-10k --seed 0 --threads 2
+    python -m benchmarks.run_grid --method=tels --task=walker2d-medium-v2-10k --seed=1   # wandb's ${args} form
+    python -m benchmarks.run_grid --grid --seed 0 1 2            # every missing combination, one after another
+    python -m benchmarks.run_grid --list --seed 0 1 2 > jobs.txt  # one command per missing run (job arrays)
+    python -m benchmarks.run_grid --table                        # TABLE.md and PNGs from what exists
 
 Methods: ``tels`` (``recipes/tels_offline.py`` in a subprocess, its run folder
 kept at ``<work-dir>/tels/<task>/seed<k>`` and resumed if interrupted),
@@ -31,7 +31,6 @@ import os
 import shlex
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 import warnings
@@ -41,11 +40,11 @@ from pathlib import Path
 import torch
 import yaml
 
-from baselines import machine_info, MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
-from torchrl_tels.training import write_json, write_text  # temp file + rename: a skip check never sees half a file
+from benchmarks.baselines import MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
+from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
+                                skip_existing, write_result)
+from torchrl_tels.training import write_text
 
-REPO = Path(__file__).resolve().parents[1]
-RECIPE = REPO / "recipes" / "tels_offline.py"
 DEFAULT_RESULTS = REPO / "benchmarks" / "results"
 DEFAULT_WORK = REPO / "runs" / "benchmarks"
 
@@ -105,8 +104,9 @@ def tels_run_dir(work_dir: Path, task: str, seed: int, method: str = "tels") -> 
 
 # --------------------------------------------------------------- running
 def one_command(args, method: str, task: str, seed: int) -> list[str]:
-    """The single-run command that reproduces (method, task, seed) with this invocation's budget."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), f"--method={method}", f"--task={task}",
+    """The single-run command that reproduces (method, task, seed) with this invocation's budget
+    (run from the repository root)."""
+    cmd = [sys.executable, "-m", "benchmarks.run_grid", f"--method={method}", f"--task={task}",
            f"--seed={seed}", f"--steps={args.steps}", f"--eval-interval={args.eval_interval}",
            f"--eval-episodes={args.eval_episodes}", f"--results-dir={args.results_dir}",
            f"--work-dir={args.work_dir}"]
@@ -117,24 +117,11 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
     return cmd
 
 
-def run_recipe(overrides: list[str], threads: int | None) -> None:
-    env = dict(os.environ)
-    if threads:
-        env["OMP_NUM_THREADS"] = str(threads)
-    cmd = [sys.executable, str(RECIPE), *overrides]
-    print("$ " + shlex.join(cmd), flush=True)
-    proc = subprocess.run(cmd, cwd=REPO, env=env)
-    if proc.returncode != 0:
-        raise RuntimeError(f"the TELS recipe exited with code {proc.returncode}: {shlex.join(cmd)}")
-
-
 def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str) -> list[str]:
     overrides = [f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true",
                  f"logger.wandb_mode={wandb_mode}", f"logger.exp_name=tels_{task}_seed{seed}"]
     if is_maze(task):
         overrides.append("preset=maze")
-    if args.threads:
-        overrides.append(f"threads={args.threads}")
     if args.tsidm_steps is not None:
         overrides.append(f"tsidm.steps={args.tsidm_steps}")
     return overrides
@@ -192,8 +179,7 @@ def budget_of(args, method: str) -> dict:
 
 def run_one(method: str, task: str, seed: int, args) -> Path:
     out = result_path(args.results_dir, method, task, seed)
-    if out.exists() and not args.force:
-        print(f"skip {method} {task} seed {seed}: {out} exists (--force to redo)", flush=True)
+    if skip_existing(out, args.force):
         return out
     wandb_mode = args.wandb_mode
     started = datetime.now(timezone.utc)
@@ -231,17 +217,16 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
         "task": task,
         "seed": seed,
         "command": shlex.join(one_command(args, method, task, seed)),
-        "argv": shlex.join([sys.executable, *sys.argv]),
+        "argv": invocation(),
         "date": started.isoformat(timespec="seconds"),
         "elapsed_s": time.perf_counter() - start,
-        "machine": machine_info(),
+        "machine": machine_description(),
         "torch_threads": threads,
         "budget": {**results.get("budget", {}), **budget_of(args, method)},
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, record)
-    print(f"== {method} {task} seed {seed}: final normalized score "
-          f"{record['final_normalized_score_mean']:.1f} -> {out}", flush=True)
+    if write_result(out, record, args.force):
+        print(f"== {method} {task} seed {seed}: final normalized score "
+              f"{record['final_normalized_score_mean']:.1f} -> {repo_relative(out)}", flush=True)
     return out
 
 
@@ -307,7 +292,7 @@ def render_table(results_dir: Path) -> Path:
         "# TELS against TorchRL's offline baselines on the D4RL-10k sets",
         "",
         f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} by "
-        f"`python benchmarks/run_grid.py --table` from `{_shown(results_dir)}`.",
+        f"`python -m benchmarks.run_grid --table` from `{repo_relative(results_dir)}`.",
         "",
         "D4RL normalized score: per seed, the mean of the last 10 evaluations (each of `eval_episodes` "
         "deterministic episodes); each cell is the mean ± std over seeds (population std), n = seeds, then "
@@ -381,25 +366,10 @@ def render_table(results_dir: Path) -> Path:
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
     lines += ["", "Each result JSON holds its command, date, machine, thread count, budget and "
-              "hyperparameters; `python benchmarks/run_grid.py --table` rebuilds this file.", ""]
+              "hyperparameters; `python -m benchmarks.run_grid --table` rebuilds this file.", ""]
     out = results_dir / "TABLE.md"
     write_text(out, "\n".join(lines))
     return out
-
-
-def _shown(path: Path) -> str:
-    try:
-        return str(path.resolve().relative_to(REPO))
-    except ValueError:
-        return str(path)
-
-
-def save_figure(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, path)
-    return path
 
 
 def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
@@ -498,7 +468,7 @@ def _split(values: list[str] | None) -> list[str] | None:
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="\n".join(__doc__.splitlines()[2:]))
     # Every option also takes the underscore spelling, the form a wandb sweep parameter gives (--key=value).

@@ -12,7 +12,10 @@ count pinned, prints:
   (256x1024 @ 1024x1024), hence a floor for the paper-budget run (Table 10:
   1000 epochs; Table 11: 100k steps) that no removal of overhead can beat.
 
-    python benchmarks/step_floor.py --threads 2
+    python -m benchmarks.step_floor --threads 2
+
+The guide's value weight alpha is the recipe's (``recipes/config``, its default preset);
+``--override guide.alpha=0.01`` (any hydra override of the recipe) times another configuration.
 
 A precision this CPU does not multiply natively (bf16 without AVX512-BF16/AMX)
 is timed over ``--emulated-steps`` steps only: it is tens of times slower.
@@ -28,6 +31,7 @@ import torch
 from torch.profiler import profile, ProfilerActivity
 from torchrl.objectives import SoftUpdate
 
+from benchmarks.harness import REPO
 from torchrl_tels.config import native_bf16_supported
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
 from torchrl_tels.envs import TSIDMEncoderTransform
@@ -38,7 +42,15 @@ from torchrl_tels.training import sum_losses
 MATMULS = ("aten::mm", "aten::addmm", "aten::bmm")
 
 
-def make_stages(data):
+def recipe_config(overrides: list[str]):
+    """The recipe's configuration as ``recipes/tels_offline.py`` composes it, with hydra ``overrides``."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "recipes" / "config"), version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+def make_stages(data, alpha: float):
     """The recipe's two steps as closures that take a timing dict and add ms per phase to it."""
     tsidm = TSIDM(data["observation"].shape[-1], data["action"].shape[-1])
     tsidm.fit_state_normalization(data["observation"])
@@ -54,7 +66,7 @@ def make_stages(data):
     value_net, guide = make_latent_value(latent_dim), make_guide_policy(latent_dim, "deterministic")
     value_loss = LatentExpectileLoss(value_net, expectile=0.7, check_inputs=False)
     value_loss.make_value_estimator(gamma=0.99)
-    guide_loss = TSymGuideLoss(guide, value_net, frozen, alpha=0.01, eta=1.0, check_inputs=False)
+    guide_loss = TSymGuideLoss(guide, value_net, frozen, alpha=alpha, eta=1.0, check_inputs=False)
     guide_loss.make_value_estimator(gamma=0.99)
     target = SoftUpdate(value_loss, tau=0.05)
     value_optim = torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=1e-4, fused=True)
@@ -117,20 +129,22 @@ def best_matmul_gflops(repeats: int) -> float:
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--steps", type=int, default=20, help="steps per timed block")
     parser.add_argument("--emulated-steps", type=int, default=3, help="steps per block for emulated bf16")
     parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
+    parser.add_argument("--override", nargs="*", default=[], help="hydra overrides of the recipe's config")
     args = parser.parse_args()
+    alpha = float(recipe_config(args.override).guide.alpha)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     native = native_bf16_supported()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU capability "
           f"{torch.backends.cpu.get_cpu_capability()}, native bf16: {native}; paper widths, batch 256, "
-          f"hopper-medium-v2 10k; median of {args.repeats} interleaved blocks")
-    stages = make_stages(load_dataset("hopper-medium-v2-10k"))
+          f"alpha {alpha:g}, hopper-medium-v2 10k; median of {args.repeats} interleaved blocks")
+    stages = make_stages(load_dataset("hopper-medium-v2-10k"), alpha)
 
     def steps_for(precision):
         return args.steps if precision == "fp32" or native else args.emulated_steps

@@ -6,7 +6,7 @@ recipe uses). They alternate in one
 process with torch's thread count pinned, and the script prints median ms/step
 and the ratio for hopper (11/3) and walker2d (17/6) sizes.
 
-    python benchmarks/tsidm_step.py --threads 1
+    python -m benchmarks.tsidm_step --threads 1
 """
 from __future__ import annotations
 
@@ -78,7 +78,7 @@ def bench(obs_dim, act_dim, batch_size, steps, repeats):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--steps", type=int, default=10, help="steps per timed block")

@@ -1,4 +1,4 @@
-"""Issue 8: where a trained TELS actor's actions go wrong, measured on its own dataset.
+"""Where a trained TELS actor's actions go wrong, measured on its own dataset.
 
 The Eq. (11) actor chains two learned maps: the guide proposes z' = π_g(z), then
 ψ_a(h_inv(z, z')) turns the pair into an action. Plain BC beats the actor on the
@@ -18,16 +18,14 @@ and the guide's latent error ||π_g(z) - z'||² next to the size of the step
 dimensions. A run trained on a ``dataset.size`` subset is also scored on the
 transitions it never saw (``held_out``), which separates fit from generalization::
 
-    python benchmarks/reproduction/action_error.py --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
+    python -m benchmarks.reproduction.action_error --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
 
-writes ``benchmarks/reproduction/results/action_error/<name>.json`` (temp file + rename).
+writes ``benchmarks/reproduction/results/action_error/<name>.json`` (temp file + rename; skipped if it
+exists unless ``--force``).
 """
 from __future__ import annotations
 
 import argparse
-import platform
-import shlex
-import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -36,12 +34,10 @@ import yaml
 from tensordict import TensorDict
 from torchrl.modules import MLP
 
+from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
 from torchrl_tels.data import load_dataset, subset_dataset
 from torchrl_tels.modules import TSIDM, load_tels_actor
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
-from torchrl_tels.training import write_json
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int, apply_to: torch.Tensor) -> torch.Tensor:
@@ -115,21 +111,25 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, required=True, help="a finished recipe run: config.yaml, tsidm.pt, policy.pt")
     parser.add_argument("--name", required=True, help="results land in results/action_error/<name>.json")
     parser.add_argument("--bc-steps", type=int, default=5000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    out = REPO / "benchmarks" / "reproduction" / "results" / "action_error" / f"{args.name}.json"
+    if skip_existing(out, args.force):
+        return
     for required in ("config.yaml", "tsidm.pt", "policy.pt"):
         if not (args.run_dir / required).exists():
             raise SystemExit(f"error: {args.run_dir / required} is missing: pass a finished run folder")
     record = action_errors(args.run_dir, args.bc_steps, args.seed)
-    record.update(run_dir=str(args.run_dir), command=shlex.join([sys.executable, *sys.argv]),
+    record.update(run_dir=args.run_dir, command=invocation(),
                   date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                  machine={"platform": platform.platform(), "threads": args.threads})
+                  machine={**machine_description(), "threads": args.threads})
     for split in ("train", "held_out"):
         if split not in record:
             continue
@@ -138,9 +138,7 @@ def main(argv=None) -> None:
               + ", ".join(f"{name} {value:.4f}" for name, value in r["action_mse"].items()))
         print(f"{split}: guide latent error / latent step = {r['guide_latent_error_sq']:.4f} / "
               f"{r['latent_step_sq']:.4f} = {r['guide_error_over_step']:.3f}")
-    out = REPO / "benchmarks" / "reproduction" / "results" / "action_error" / f"{args.name}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, record)
+    write_result(out, record, args.force)
 
 
 if __name__ == "__main__":

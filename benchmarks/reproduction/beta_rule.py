@@ -1,7 +1,7 @@
 """App. B.5's beta rule read two ways: which beta has the lowest TS-IDM training loss?
 
-    python benchmarks/reproduction/beta_rule.py --task hopper-medium-v2-10k --seed 0 --beta 0.1
-    python benchmarks/reproduction/beta_rule.py --report
+    python -m benchmarks.reproduction.beta_rule --task hopper-medium-v2-10k --seed 0 --beta 0.1
+    python -m benchmarks.reproduction.beta_rule --report
 
 The paper selects beta of Eq. (7) from {0.01, 0.1, 1} as "the one with the lowest TS-IDM
 training loss". Eq. (7) is ell_rec + beta * (ell_dyn + ell_ode + ell_Tsym), so comparing that
@@ -16,7 +16,7 @@ compares every candidate on the same objective. This script records both for eac
   ``runs/reproduction/beta_rule/``;
 - it reads each term from the run's CSV scalars (logged every 100 steps) and averages the
   points in the last 10% of steps, the window the recipe's ``tsidm.beta=auto`` compares;
-- it writes ``results/beta_rule/<task>/seed<k>_beta<b>.json``.
+- it writes ``results/beta_rule/<task>/seed<k>_beta<b>.json`` (skipped if it exists, unless ``--force``).
 
 ``--report`` prints, per task and seed, both readings and the beta each picks.
 """
@@ -25,16 +25,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import time
 from pathlib import Path
 
-from run_choice import REPO, run_recipe  # the same directory: Python puts it first on sys.path
+from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
 
-from torchrl_tels.training import write_json
-
-HERE = Path(__file__).resolve().parent
-OUT = HERE / "results" / "beta_rule"
+OUT = REPO / "benchmarks" / "reproduction" / "results" / "beta_rule"
 TSIDM_STEPS = 3000
 TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym")
 FULL_RUN_ARMS = {0.01: "beta0.01", 1.0: "reencode"}  # arms whose stage 1 ran at this beta and budget
@@ -59,70 +55,70 @@ def run_dir_for(task: str, seed: int, beta: float) -> Path:
     return REPO / "runs" / "reproduction" / "beta_rule" / task / f"seed{seed}_beta{beta:g}"
 
 
-def record(task: str, seed: int, beta: float, threads: int) -> None:
+def record(task: str, seed: int, beta: float, threads: int, force: bool = False) -> None:
     out = OUT / task / f"seed{seed}_beta{beta:g}.json"
-    if out.exists():
-        print(f"{out} exists; skipping")
+    if skip_existing(out, force):
         return
     run_dir = run_dir_for(task, seed, beta)
     scalars = run_dir / "csv" / "scalars" / "tsidm"
     command = None
     if not (scalars / "ell_total.csv").exists() or not (run_dir / "results.json").exists():
         # A one-step stage 2 with one episode: the recipe only needs to finish; nothing of it is read.
-        command = run_recipe(task, seed, run_dir, threads, [
+        command = run_recipe([
+            f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true", "logger.wandb_mode=disabled",
             f"tsidm.steps={TSIDM_STEPS}", f"tsidm.beta={beta:g}",
-            "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"])
+            "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"], threads)
     recorded_beta = json.loads((run_dir / "results.json").read_text())["beta"]
     if abs(recorded_beta - beta) > 1e-12:
         raise ValueError(f"{run_dir} trained stage 1 with beta={recorded_beta}, not {beta}")
     terms = {name: tail_mean(scalars / f"{name}.csv") for name in TERMS}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, {
+    write_result(out, {
         "task": task, "seed": seed, "beta": beta, "tsidm_steps": TSIDM_STEPS, "terms": terms,
         "weighted_eq7": terms["ell_rec"] + beta * sum(terms[k] for k in TERMS[1:]),
         "unweighted_sum": sum(terms.values()),
-        "run_dir": str(run_dir.relative_to(REPO)), "command": None if command is None else " ".join(command),
-        "date": time.strftime("%Y-%m-%d"), "cpu_count": os.cpu_count(),
-    })
+        "run_dir": run_dir, "command": None if command is None else command_line(command),
+        "date": time.strftime("%Y-%m-%d"), "machine": machine_description(),
+    }, force)
     print(f"{task} seed {seed} beta {beta:g}: " + ", ".join(f"{k} {v:.4f}" for k, v in terms.items()))
 
 
-def report() -> None:
+def report() -> str:
+    """The table of every recorded (task, seed, beta), then the beta each reading picks per task and seed."""
     rows: dict[tuple[str, int], dict[float, dict]] = {}
     for path in sorted(OUT.glob("*/seed*_beta*.json")):
         result = json.loads(path.read_text())
         rows.setdefault((result["task"], result["seed"]), {})[result["beta"]] = result
-    print("| task | seed | beta | ell_rec | ell_dyn | ell_ode | ell_Tsym | Eq. (7) weighted | unweighted sum |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    lines = ["| task | seed | beta | ell_rec | ell_dyn | ell_ode | ell_Tsym | Eq. (7) weighted | unweighted sum |",
+             "|---|---|---|---|---|---|---|---|---|"]
     picks = []
     for (task, seed), by_beta in sorted(rows.items()):
         for beta, r in sorted(by_beta.items()):
             t = r["terms"]
-            print(f"| {task} | {seed} | {beta:g} | " + " | ".join(f"{t[k]:.4f}" for k in TERMS)
-                  + f" | {r['weighted_eq7']:.4f} | {r['unweighted_sum']:.4f} |")
+            lines.append(f"| {task} | {seed} | {beta:g} | " + " | ".join(f"{t[k]:.4f}" for k in TERMS)
+                         + f" | {r['weighted_eq7']:.4f} | {r['unweighted_sum']:.4f} |")
         weighted = min(by_beta, key=lambda b: by_beta[b]["weighted_eq7"])
         unweighted = min(by_beta, key=lambda b: by_beta[b]["unweighted_sum"])
         picks.append(f"- {task} seed {seed} (beta in {sorted(by_beta)}): weighted picks {weighted:g}, "
                      f"unweighted picks {unweighted:g}")
-    print()
-    print("\n".join(picks))
+    return "\n".join([*lines, "", *picks])
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--task")
     parser.add_argument("--seed", type=int)
     parser.add_argument("--beta", type=float, nargs="+", default=[0.01, 0.1, 1.0])
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--report", action="store_true", help="print the table of what is recorded")
+    parser.add_argument("--force", action="store_true", help="rewrite results that exist")
     args = parser.parse_args()
     if args.report:
-        report()
+        print(report())
         return
     if args.task is None or args.seed is None:
         parser.error("--task and --seed are required unless --report is given")
     for beta in args.beta:
-        record(args.task, args.seed, beta, args.threads)
+        record(args.task, args.seed, beta, args.threads, args.force)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Choice 5's budget on the MuJoCo preset: a longer stage 2 and a longer stage 1 against the study's.
 
-    python benchmarks/reproduction/budget.py
+    python -m benchmarks.reproduction.budget
 
 The study compares every choice at 3k TS-IDM steps and 5k policy steps; the paper trains about
 36k and 100k. This reads two arms run on the preset (re-encoding, beta = 0.01, alpha = 1) against
@@ -20,9 +20,10 @@ Nothing is trained here.
 """
 from __future__ import annotations
 
+import argparse
 import statistics
 
-from summary import HERE, SHARED_BUDGET, TASKS, evaluation_scores, seed_results
+from benchmarks.reproduction.summary import HERE, SHARED_BUDGET, TASKS, evaluation_scores, seed_results
 
 PRESET_ARMS = {task: "alpha1" if task.startswith("halfcheetah") else "alpha1_epyc" for task in TASKS}
 LONG_STAGE2 = ("long20k_preset", ["tsidm.steps=3000", "optim.steps=20000", "eval.interval=1000", "eval.episodes=10"])
@@ -34,10 +35,11 @@ def runs(arm: str, budget: list[str], task: str) -> dict[int, dict]:
     return seed_results(HERE / "results" / arm / task, lambda result: result["budget"] == budget)
 
 
-def main() -> None:
-    print("| task | seed | preset, 5k policy steps: all 10 | last 4 | 20k steps: last 10 | change from all 10 "
-          "| from last 4 | 9k TS-IDM steps: all 10 | change |")
-    print("|---|---|---|---|---|---|---|---|---|")
+def render() -> str:
+    """The table of both arms against the preset's runs, then the count and mean of each change."""
+    lines = ["| task | seed | preset, 5k policy steps: all 10 | last 4 | 20k steps: last 10 | change from all 10 "
+             "| from last 4 | 9k TS-IDM steps: all 10 | change |",
+             "|---|---|---|---|---|---|---|---|---|"]
     long_changes, late_changes, stage1_changes = [], [], []
     for task in TASKS:
         preset = runs(PRESET_ARMS[task], SHARED_BUDGET, task)
@@ -60,13 +62,19 @@ def main() -> None:
                 cells += [f"{longer:.1f}", f"{longer - base:+.1f}"]
             else:
                 cells += ["", ""]
-            print(f"| {task} | {seed} | " + " | ".join(cells) + " |")
+            lines.append(f"| {task} | {seed} | " + " | ".join(cells) + " |")
     for name, changes in (("20k policy steps (last 10) against the 5k run's all 10", long_changes),
                           ("20k policy steps (last 10) against the 5k run's last 4", late_changes),
                           ("9k TS-IDM steps", stage1_changes)):
         if changes:
-            print(f"\n{name}: {sum(c > 0 for c in changes)} of {len(changes)} up, "
-                  f"mean change {statistics.mean(changes):+.1f}.")
+            lines.append(f"\n{name}: {sum(c > 0 for c in changes)} of {len(changes)} up, "
+                         f"mean change {statistics.mean(changes):+.1f}.")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]).parse_args()
+    print(render())
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
-"""Issue 8: does the guide generalize to states it never saw, and does a residual parametrization help?
+"""Does the guide generalize to states it never saw, and does a residual parametrization help?
 
-Takes a finished TELS run trained on a ``dataset.size`` subset (e.g. ``run_choice.py --name
+Takes a finished TELS run trained on a ``dataset.size`` subset (e.g. ``run_choice --name
 holdout7500 ... --override dataset.size=7500``) and, with its TS-IDM frozen, fits fresh guides
 (Table 11's 1024x1024 ReLU MLP, Adam 1e-4, batch 256) on the training rows to Eq. (9)'s state
 term alone, η‖ψ_s(π_g(z_s)) − s'‖² with η = 1 (at α = 0.01 the value term is inert, see LOG.md),
@@ -12,16 +12,14 @@ in two parametrizations:
 It prints, on the training rows and on the held-out rows, the guide's latent error next to the
 latent step, its decoded state error and the Eq. (11) action error ψ_a(h_inv(z, π_g(z)))::
 
-    python benchmarks/reproduction/guide_fit.py --run-dir runs/reproduction/holdout7500/hopper-medium-v2-10k/seed0
+    python -m benchmarks.reproduction.guide_fit --run-dir runs/reproduction/holdout7500/hopper-medium-v2-10k/seed0
 
-writes ``benchmarks/reproduction/results/guide_fit/<task>-seed<k>.json`` (temp file + rename).
+writes ``benchmarks/reproduction/results/guide_fit/<task>-seed<k>.json`` (temp file + rename; skipped
+if it exists unless ``--force``).
 """
 from __future__ import annotations
 
 import argparse
-import platform
-import shlex
-import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -29,12 +27,10 @@ import torch
 import yaml
 from torchrl.modules import MLP
 
-from action_error import training_rows
+from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.reproduction.action_error import training_rows
 from torchrl_tels.data import load_dataset
 from torchrl_tels.modules import TSIDM
-from torchrl_tels.training import write_json
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def fit_guide(tsidm: TSIDM, z: torch.Tensor, next_state: torch.Tensor, rows: torch.Tensor,
@@ -58,14 +54,19 @@ def fit_guide(tsidm: TSIDM, z: torch.Tensor, next_state: torch.Tensor, rows: tor
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, required=True)
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     config = yaml.safe_load((args.run_dir / "config.yaml").read_text())
+    task = config["dataset"]["name"]
+    out = REPO / "benchmarks" / "reproduction" / "results" / "guide_fit" / f"{task}-seed{config['seed']}.json"
+    if skip_existing(out, args.force):
+        return
     if not config["dataset"].get("size"):
         raise SystemExit(f"error: {args.run_dir} trained on the whole dataset: there are no held-out rows to score")
     data = load_dataset(config["dataset"]["name"])
@@ -76,11 +77,10 @@ def main(argv=None) -> None:
         z = tsidm.encode_state(data["observation"])
         z_next = tsidm.encode_state(data["next", "observation"])
         next_state = tsidm.normalize_state(data["next", "observation"])
-    record = {"run_dir": str(args.run_dir), "dataset": config["dataset"]["name"], "steps": args.steps,
+    record = {"run_dir": args.run_dir, "dataset": config["dataset"]["name"], "steps": args.steps,
               "transitions": {"train": int(train.sum()), "held_out": int((~train).sum())}, "variants": {},
-              "command": shlex.join([sys.executable, *sys.argv]),
-              "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "machine": {"platform": platform.platform(), "threads": args.threads}}
+              "command": invocation(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+              "machine": {**machine_description(), "threads": args.threads}}
     for name in ("absolute", "residual"):
         guide = fit_guide(tsidm, z, next_state, train.nonzero().squeeze(-1), name == "residual", args.steps, args.seed)
         with torch.no_grad():
@@ -96,10 +96,7 @@ def main(argv=None) -> None:
             }
             record["variants"][name][split] = entry
             print(f"{name:8s} {split:8s} " + ", ".join(f"{k} {v:.4f}" for k, v in entry.items()), flush=True)
-    task = config["dataset"]["name"]
-    out = REPO / "benchmarks" / "reproduction" / "results" / "guide_fit" / f"{task}-seed{config['seed']}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, record)
+    write_result(out, record, args.force)
 
 
 if __name__ == "__main__":

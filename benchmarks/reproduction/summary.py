@@ -1,21 +1,24 @@
 """One table of every training-time variant of the reproduction study, at the shared budget.
 
-    python benchmarks/reproduction/summary.py [--out benchmarks/reproduction/SUMMARY.md]
+    python -m benchmarks.reproduction.summary
+
+prints it (``benchmarks.reproduction.tables`` writes it into RESULTS.md with the study's other tables).
 
 Rows are the variants under ``results/<variant>/`` that ran with the shared budget
-(``run_choice.py --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10``)
-and the Table 3 ablations of the issue-6 grid; columns are tasks. A cell lists the score of each
-seed (final = mean of the last 10 evaluations) and, after the arrow, the mean change over the seeds
-both have against the arm the variant was built on: the paper-default arm (the issue-6 grid's TELS
-runs), the ``reencode`` arm (the MuJoCo preset from the fourth session) for variants that ran
-with ``guide.reencode_proposal=true`` on top, or the ``beta0.01`` arm (the preset since the sixth
-session, re-encoding and beta = 0.01) for variants that ran on top of both; on a task where a variant's runs
-all recorded the ninth session's Intel Xeon, it is paired against ``preset_avx512``, the preset rerun on
-that machine. (The name is historical: the AMD EPYC machines also report AVX-512, and they reproduce the
-``beta0.01`` arm's stage-1 losses bit for bit, so they pair with it.)
-Variants that also ran with alpha = 1 (the preset since the tenth session) are paired, task by task,
-against the alpha = 1 run on the same kind of CPU: ``alpha1`` or ``alpha1_epyc``. A preset value a
-variant did not set itself is shown in its overrides with "(preset)".
+(``run_choice --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10``)
+and the Table 3 ablations of the baseline grid (``benchmarks/results/``, ``run_grid`` at the same
+budget); columns are tasks. A cell lists the score of each seed (final = mean of the last 10
+evaluations) and, after the arrow, the mean change over the seeds both have against the arm the
+variant was built on: the paper-default arm (the grid's TELS runs), the ``reencode`` arm
+(re-encoded proposals, beta = 1) for variants that ran with ``guide.reencode_proposal=true`` on
+top, or the ``beta0.01`` arm (re-encoding and beta = 0.01) for variants that ran on top of both.
+Same-seed runs are exact only on one kind of CPU, so on a task where a variant's runs all recorded
+an Intel Xeon, it is paired against ``preset_avx512``, the ``beta0.01`` settings rerun on that
+machine. (The AMD EPYC machines also report AVX-512, but they reproduce the ``beta0.01`` arm's
+stage-1 losses bit for bit, so they pair with it: the CPU model decides, not the AVX level.)
+Variants that also ran with alpha = 1 are paired, task by task, against the alpha = 1 arm run on
+the same kind of CPU: ``alpha1`` or ``alpha1_epyc``. A preset value a variant did not set itself
+is shown in its overrides with "(preset)".
 BC on the same file and budget closes the table.
 Variants that change which transitions are trained on (``dataset.size`` hold-outs) or the budget
 are diagnostics, not choices, and are left out; reward scaling (``dataset.reward_scale``) is
@@ -28,22 +31,22 @@ import json
 import statistics
 from pathlib import Path
 
-from torchrl_tels.training import write_text
+from benchmarks.harness import recorded_cpu
 
 HERE = Path(__file__).resolve().parent
 GRID = HERE.parent / "results"
 SHARED_BUDGET = ["tsidm.steps=3000", "optim.steps=5000", "eval.interval=500", "eval.episodes=10"]
 GRID_BUDGET = ("--steps=5000", "--tsidm-steps=3000", "--eval-interval=500", "--eval-episodes=10")
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
-ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the issue-6 grid
+ABLATIONS = ("tels_ae", "tels_dyn", "tels_ode")  # Table 3 rows of the baseline grid
 DATA_SUBSETS = ("dataset.size=", "dataset.delete_")  # hold-out diagnostics, not choices
-REENCODE_ARM = "reencode"  # choice 7 alone: the MuJoCo preset in the fourth and fifth sessions
-BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: the MuJoCo preset since the sixth session
-# The preset again, on the Intel Xeon (AVX-512) machine of the ninth session: same-seed runs on
-# another CPU differ in their numerics, so that machine's runs are compared against this arm.
+REENCODE_ARM = "reencode"  # choice 7 alone: re-encoded proposals, beta = 1, alpha = 0.01
+BETA_ARM = "beta0.01"  # choice 5 on top of choice 7: re-encoding and beta = 0.01, alpha = 0.01
+# The beta0.01 settings again, on an Intel Xeon (AVX-512): same-seed runs on another CPU differ in
+# their numerics, so that machine's runs are compared against this arm.
 AVX512_PRESET_ARM = "preset_avx512"
-XEON = "Intel(R) Xeon(R)"  # how run_choice.cpu_description() names that machine
-# alpha = 1 on top of beta0.01: the preset since the tenth session, run on both kinds of CPU.
+XEON = "Intel(R) Xeon(R)"  # how harness.machine_description() names that machine's CPU
+# alpha = 1 on top of beta0.01 (the mujoco preset's values), run on both kinds of CPU.
 ALPHA1_ARMS = ("alpha1", "alpha1_epyc")
 ALPHA1 = ("guide.alpha=1", "guide.alpha=1.0")
 
@@ -64,12 +67,12 @@ def evaluation_scores(result: dict) -> list[float]:
 
 
 def on_grid_budget(result: dict) -> bool:
-    """Whether an issue-6 grid result ran at the study's shared budget."""
+    """Whether a baseline grid result ran at the study's shared budget."""
     return all(flag in result.get("command", "") for flag in GRID_BUDGET)
 
 
 def _grid_arm(method: str) -> dict[str, dict[int, float]]:
-    """{task: {seed: final score}} of the issue-6 grid's runs of ``method`` at the shared budget."""
+    """{task: {seed: final score}} of the baseline grid's runs of ``method`` at the shared budget."""
     found: dict[str, dict[int, float]] = {}
     for path in sorted((GRID / method).glob("*/seed*.json")):
         result = json.loads(path.read_text())
@@ -92,11 +95,11 @@ def _variant_arms() -> dict[str, tuple[str, dict, dict[str, set[str]]]]:
                 found.setdefault(path.parent.name, {})[int(result["seed"])] = result["final_normalized_score_mean"]
                 given = list(result["overrides"])
                 if not any(o.startswith("tsidm.beta=") for o in given) and result.get("beta", 1.0) != 1.0:
-                    given.append(f"tsidm.beta={result['beta']:g} (preset)")  # ran after the preset took beta = 0.01
+                    given.append(f"tsidm.beta={result['beta']:g} (preset)")  # the preset's beta, not an override
                 if not any(o.startswith("guide.alpha=") for o in given) and result.get("alpha", 0.01) != 0.01:
-                    given.append(f"guide.alpha={result['alpha']:g} (preset)")  # ran after the preset took alpha = 1
+                    given.append(f"guide.alpha={result['alpha']:g} (preset)")  # the preset's alpha, not an override
                 overrides[" ".join(given)] = None
-                cpus.setdefault(path.parent.name, set()).add(result.get("cpu", "unknown"))
+                cpus.setdefault(path.parent.name, set()).add(recorded_cpu(result))
         if found:
             arms[folder.name] = ("` / `".join(overrides), found, cpus)
     return arms
@@ -157,7 +160,7 @@ def render() -> str:
             against = next(iter(groups), base[0] if base else "")
         lines.append(f"| {name} | {overrides} | {against} | " + " | ".join(cells) + " |")
 
-    row("paper defaults (issue-6 grid TELS)", "(none)", default, base=None)
+    row("paper defaults (grid TELS)", "(none)", default, base=None)
     for name, (overrides, found, cpus) in variants.items():
         on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
         on_beta = name != BETA_ARM and on_reencode and "tsidm.beta=0.01" in overrides
@@ -172,24 +175,19 @@ def render() -> str:
         row(name, f"`{overrides}`", found, base, per_task)
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))
-    row("BC (issue-6 grid)", "", bc)
+    row("BC (grid)", "", bc)
     return "\n".join(lines) + (
         "\n\nCells: score per seed (seeds 0, 1, ... unless marked sK) → mean paired change against the arm"
         " named in 'against'.\n"
         f"Means per task ({', '.join(TASKS)}): paper defaults {_means(default)}; "
-        f"re-encode arm (MuJoCo preset to the fifth session) {_means(reencode)}; "
-        f"beta0.01 arm (MuJoCo preset since the sixth) {_means(beta_arm)}; "
+        f"re-encode arm (re-encoding, beta = 1) {_means(reencode)}; "
+        f"beta0.01 arm (re-encoding, beta = 0.01) {_means(beta_arm)}; "
         f"the preset on the Intel Xeon machine {_means(avx512_arm)}; BC {_means(bc)}.\n")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, help="also write the table here (markdown)")
-    args = parser.parse_args()
-    table = render()
-    print(table)
-    if args.out:
-        write_text(args.out, table)
+    argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]).parse_args()
+    print(render())
 
 
 if __name__ == "__main__":

@@ -1,0 +1,169 @@
+"""The reproduction study's tables, generated into RESULTS.md from the result JSONs.
+
+    python -m benchmarks.reproduction.tables            # writes benchmarks/reproduction/RESULTS.md
+    python -m benchmarks.reproduction.tables --check    # exit 1 if RESULTS.md differs from what the JSONs give
+
+RESULTS.md is the one place the study's numbers are published: every arm on every task (seeds,
+final scores, and where a run recorded them the second-half score and the latent-scale
+diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget`` and ``beta_rule
+--report``, each under the command that prints it alone. Nothing is trained. A new result JSON
+goes into RESULTS.md by running this again; the file says it is generated and is not edited by hand.
+"""
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import statistics
+import sys
+
+from benchmarks.harness import recorded_cpu, repo_relative
+from benchmarks.reproduction import beta_rule, budget, eval_reading, summary
+
+RESULTS = summary.HERE / "results"
+OUT = summary.HERE / "RESULTS.md"
+COMMAND = "python -m benchmarks.reproduction.tables"
+DIAGNOSTICS = ("latent_rms", "latent_step_rms")
+#: The eval_reading tables published here: (arms, the arm of the paired change). Each pairs arms
+#: run on one kind of CPU: the Intel Xeon arms against ``preset_avx512``, the AMD ones against ``beta0.01``.
+READINGS = (
+    ((summary.BETA_ARM, *eval_reading.BASELINES), "bc"),
+    ((summary.AVX512_PRESET_ARM, "alpha1", "eta10", "beta0.1", "tsidm_ae_reencode"), summary.AVX512_PRESET_ARM),
+    ((summary.BETA_ARM, "alpha0.3", "alpha1_epyc", "beta0.01_rerun"), summary.BETA_ARM),
+)
+
+
+def arm_runs() -> dict[tuple[str, str, tuple[str, ...]], list[dict]]:
+    """{(arm, task, budget): [result, ...]} of every training run under ``results/``, in seed order."""
+    found: dict[tuple[str, str, tuple[str, ...]], list[dict]] = {}
+    for path in sorted(RESULTS.glob("*/*/seed*.json")):
+        result = json.loads(path.read_text())
+        if "final_normalized_score_mean" not in result:  # action-time, beta-rule and other readings
+            continue
+        key = (path.parent.parent.name, path.parent.name, tuple(result.get("budget") or ()))
+        found.setdefault(key, []).append(result)
+    for runs in found.values():
+        runs.sort(key=lambda r: int(r["seed"]))
+    return found
+
+
+def _task_order(task: str) -> tuple[int, str]:
+    return (summary.TASKS.index(task) if task in summary.TASKS else len(summary.TASKS), task)
+
+
+def _mean_of(runs: list[dict], read, fmt: str) -> str:
+    """The mean over the runs that recorded a value (``read`` gives None where one did not)."""
+    values = [v for v in map(read, runs) if v is not None]
+    if not values:
+        return "—"
+    text = format(statistics.mean(values), fmt)
+    return text if len(values) == len(runs) else f"{text} (n={len(values)})"
+
+
+def _budget(budget: tuple[str, ...]) -> str:
+    if list(budget) == summary.SHARED_BUDGET:
+        return "shared"
+    return "`" + " ".join(budget) + "`" if budget else "none given"
+
+
+def _weights(result: dict) -> str:
+    """The beta of Eq. (7) and the alpha of Eq. (9) a run used ("—" where it did not record alpha)."""
+    alpha = result.get("alpha")
+    return f"{result.get('beta', float('nan')):g}, " + ("—" if alpha is None else f"{alpha:g}")
+
+
+def arm_table() -> str:
+    """One row per arm, task and budget: seeds, each seed's final score, their mean, the second-half
+    score and the latent-scale diagnostics where the runs recorded them, and the CPUs; then the
+    notes the runs carry."""
+    lines = ["| arm | task | budget | overrides | β, α | seeds | final score per seed | mean | second-half mean "
+             "| latent_rms | latent_step_rms | CPU |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    notes = []
+    rows = sorted(arm_runs().items(), key=lambda kv: (kv[0][0], _task_order(kv[0][1]), kv[0][2]))
+    for (arm, task, budget_), runs in rows:
+        notes += [f"- {arm}, {task}, seed {r['seed']}: {r['note']}" for r in runs if r.get("note")]
+        overrides = sorted({" ".join(r.get("overrides") or []) for r in runs})
+        scores = [r["final_normalized_score_mean"] for r in runs]
+        cpus = sorted({recorded_cpu(r) for r in runs})
+        cells = [
+            arm, task, _budget(budget_), " / ".join(f"`{o}`" if o else "(none)" for o in overrides),
+            " / ".join(sorted({_weights(r) for r in runs})), ", ".join(str(r["seed"]) for r in runs),
+            ", ".join(f"{s:.1f}" for s in scores),
+            f"**{statistics.mean(scores):.1f}**", _mean_of(runs, lambda r: r.get("second_half_score_mean"), ".1f"),
+            *(_mean_of(runs, lambda r, k=k: r.get("diagnostics", {}).get(k), ".4g") for k in DIAGNOSTICS),
+            " / ".join("not recorded" if c == "unknown" else c for c in cpus),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines + (["", "Notes recorded with the runs:", "", *notes] if notes else []))
+
+
+def render() -> str:
+    readings = []
+    for arms, against in READINGS:
+        readings += [f"`python -m benchmarks.reproduction.eval_reading --arms {' '.join(arms)} --against {against}`",
+                     "", eval_reading.render(arms, against), ""]
+    return "\n".join([
+        "# Reproduction study: results",
+        "",
+        f"Generated by `{COMMAND}` from the JSONs under `benchmarks/reproduction/results/` (the paper-default",
+        "and baseline arms from `benchmarks/results/`); do not edit. The commands that made each arm's runs,",
+        "the machines and what the study concluded are in `LOG.md`, the study's frozen narrative.",
+        "",
+        "## Every arm, per task",
+        "",
+        "Final score: the mean of a run's last `eval.last_n` evaluations (10 unless its budget says otherwise),",
+        "D4RL-normalized. Second-half mean: the mean of the second half of its evaluations. `latent_rms` and",
+        "`latent_step_rms`: the trained TS-IDM's latent spread and latent step on the data",
+        "(`torchrl_tels.diagnostics.latent_statistics`), means over seeds. \"—\": the runs did not record it",
+        "(they predate the field); \"(n=k)\": only k of the runs did. β, α: the weights of Eq. (7) and Eq. (9)",
+        "the runs used, preset values included (α \"—\": the JSONs do not record it; it is the override's, else",
+        "0.01). Budget \"shared\":",
+        f"`{' '.join(summary.SHARED_BUDGET)}`.",
+        "",
+        arm_table(),
+        "",
+        "## Paired changes at the shared budget",
+        "",
+        "`python -m benchmarks.reproduction.summary`",
+        "",
+        summary.render().rstrip("\n"),
+        "",
+        "## The same runs read four ways",
+        "",
+        *readings,
+        "## Longer budgets on the preset",
+        "",
+        "`python -m benchmarks.reproduction.budget`",
+        "",
+        budget.render(),
+        "",
+        "## The beta rule of App. B.5 read two ways",
+        "",
+        "`python -m benchmarks.reproduction.beta_rule --report`",
+        "",
+        beta_rule.report(),
+        "",
+    ])
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="compare with RESULTS.md instead of writing it")
+    args = parser.parse_args()
+    text = render()
+    if args.check:
+        current = OUT.read_text() if OUT.exists() else ""
+        if current == text:
+            return 0
+        sys.stdout.writelines(difflib.unified_diff(current.splitlines(True), text.splitlines(True),
+                                                   "RESULTS.md", f"{COMMAND} would write"))
+        print(f"\nRESULTS.md is out of date: run {COMMAND}", file=sys.stderr)
+        return 1
+    OUT.write_text(text)
+    print(f"wrote {repo_relative(OUT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
