@@ -61,8 +61,8 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, Val
 from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
 
 from torchrl_tels.checkpoint import file_sha256
-from torchrl_tels.data import get_task, load_dataset, make_offline_replay_buffer, normalized_score
-from torchrl_tels.envs import evaluate_policy, make_eval_env, TSIDMEncoderTransform
+from torchrl_tels.data import load_dataset, make_offline_replay_buffer
+from torchrl_tels.envs import evaluate_policy, get_task, make_eval_env, normalized_score, TSIDMEncoderTransform
 from torchrl_tels.training import check_finite
 
 __all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "train_baseline"]

@@ -2,7 +2,7 @@
 
 For a maze dataset, the transitions whose (x, y) lies in regions along the
 path from the evaluation start to the goal are deleted at a given ratio
-(0 %, 70 %, 100 %), then TELS (``recipes/tels_offline.py``, maze preset) and
+(0 %, 70 %, 100 %), then TELS (``recipes/tels_offline.py``, ``domain=maze``) and
 TorchRL's ``IQLLoss`` (the IQL paper's maze values) are trained on what is
 left, with the same policy-step budget. Each trained policy is rolled out for
 20 deterministic episodes from the fixed start; the result JSON keeps the
@@ -49,8 +49,8 @@ import torch
 from benchmarks.baselines import MAZE_HYPERPARAMETERS, train_baseline
 from benchmarks.harness import (machine_description, REPO, repo_relative, run_recipe, save_figure, skip_existing,
                                 write_result)
-from torchrl_tels.data import delete_regions, get_task, load_dataset, points_in_boxes
-from torchrl_tels.envs import make_eval_env, rollout_episodes
+from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes
+from torchrl_tels.envs import get_task, make_eval_env, rollout_episodes
 from torchrl_tels.modules import load_tels_actor
 from torchrl_tels.training import write_text
 
@@ -81,7 +81,8 @@ class Setup:
 
 
 def _pointmaze_medium() -> tuple[Setup, list]:
-    from torchrl_tels.data.pointmaze import FIXED_TASK_CELLS, make_pointmaze_env, WaypointController
+    from torchrl_tels.collection import WaypointController
+    from torchrl_tels.envs.pointmaze import FIXED_TASK_CELLS, make_pointmaze_env
 
     env = make_pointmaze_env("Medium")
     maze = env.unwrapped.maze
@@ -118,7 +119,7 @@ def ensure_dataset(setup: Setup) -> None:
 
     if setup.dataset in minari.list_local_datasets():
         return
-    from torchrl_tels.data.pointmaze import collect_pointmaze_dataset
+    from torchrl_tels.collection import collect_pointmaze_dataset
 
     print(f"collecting {setup.dataset}: {POINTMAZE_STEPS} steps, action noise {POINTMAZE_NOISE}", flush=True)
     collect_pointmaze_dataset(setup.dataset, maze="Medium", n_steps=POINTMAZE_STEPS, seed=0,
@@ -144,10 +145,10 @@ def train_tels(setup: Setup, boxes, ratio: float, seed: int, args):
     run_dir = args.work_dir / setup.name / "tels" / f"ratio{ratio:g}_seed{seed}"
     box_list = "[" + ",".join("[" + ",".join(f"{v:g}" for v in box) + "]" for box in boxes) + "]"
     # One cheap final evaluation: the 20 rollouts below are the measurement.
-    overrides = ["preset=maze", f"dataset.name={setup.dataset}", f"dataset.task={setup.task}",
+    overrides = ["domain=maze", "budget=paper", f"dataset.name={setup.dataset}", f"dataset.task={setup.task}",
                  f"dataset.delete_boxes={box_list}", f"dataset.delete_ratio={ratio:g}", f"seed={seed}",
                  f"run_dir={run_dir}", "resume=true", "logger.wandb_mode=disabled",
-                 f"tsidm.steps={args.tsidm_steps}", f"optim.steps={args.steps}", f"eval.interval={args.steps}",
+                 f"tsidm.steps={args.tsidm_steps}", f"policy.steps={args.steps}", f"eval.interval={args.steps}",
                  "eval.episodes=1", "eval.last_n=1", f"checkpoint.interval={min(args.steps, 5000)}"]
     run_recipe(overrides, args.threads)
     env = make_eval_env(get_task(setup.task).env_id)

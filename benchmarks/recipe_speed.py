@@ -27,7 +27,7 @@ def run_once(precision: str, threads: int, tsidm_steps: int, policy_steps: int, 
     with tempfile.TemporaryDirectory() as tmp:
         run_recipe([
             f"run_dir={tmp}/run", f"precision={precision}",
-            f"tsidm.steps={tsidm_steps}", f"optim.steps={policy_steps}",
+            f"tsidm.steps={tsidm_steps}", f"policy.steps={policy_steps}",
             f"eval.interval={policy_steps}", f"eval.episodes={episodes}", "eval.last_n=1",
             f"checkpoint.interval={10 * policy_steps}", "logger.wandb_mode=disabled",
         ], threads, quiet=True)

@@ -77,7 +77,7 @@ PAPER_TABLE1 = {
     "antmaze-umaze-v0-10k": {"bc": (44.7, 42.1), "td3bc": (0.7, 1.2), "iql": (65.1, 19.4),
                              "tsrl": (76.1, 15.6), "tels": (88.7, 7.7)},
 }
-#: Task-name prefixes run with the recipe's maze preset (stochastic guide, AntMaze values, r - 1)
+#: Task-name prefixes run with the recipe's maze domain (stochastic guide, AntMaze values, r - 1)
 #: and the baselines' maze hyperparameters.
 MAZE_PREFIXES = ("antmaze", "pointmaze")
 PAPER_POLICY_STEPS = 100_000  # Table 11
@@ -121,7 +121,7 @@ def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str
     overrides = [f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true",
                  f"logger.wandb_mode={wandb_mode}", f"logger.exp_name=tels_{task}_seed{seed}"]
     if is_maze(task):
-        overrides.append("preset=maze")
+        overrides += ["domain=maze", "budget=paper"]
     if args.tsidm_steps is not None:
         overrides.append(f"tsidm.steps={args.tsidm_steps}")
     return overrides
@@ -132,7 +132,7 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     if args.force and run_dir.exists():
         shutil.rmtree(run_dir)
     overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode) + [
-        f"optim.steps={args.steps}", f"optim.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
+        f"policy.steps={args.steps}", f"policy.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
         f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}",
     ]
     if method in ABLATIONS:
@@ -162,7 +162,7 @@ def resolve_tsidm(task: str, seed: int, args) -> tuple[Path, str]:
     if not (run_dir / "tsidm.pt").exists():
         # Stage 1 only: the policy stage is cut to one step with a one-step evaluation.
         run_recipe(_recipe_overrides(task, seed, run_dir, args, "disabled") + [
-            "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.max_steps=1", "eval.last_n=1",
+            "policy.steps=1", "eval.interval=1", "eval.episodes=1", "eval.max_steps=1", "eval.last_n=1",
         ], args.threads)
     return run_dir / "tsidm.pt", "recipe, stage 1 only"
 
@@ -502,7 +502,7 @@ def parse_args(argv=None):
         args.seed = [int(s) for s in _split(args.seed) or []] or None
     except ValueError:
         parser.error(f"--seed takes integers, got {args.seed}")
-    from torchrl_tels.data import get_task
+    from torchrl_tels.envs import get_task
 
     for task in args.task or []:
         try:

@@ -1,7 +1,7 @@
 """Where the time of a TELS train step goes, and the fastest a paper-budget run could be on this CPU.
 
-Builds both stages as ``recipes/tels_offline.py`` does (paper widths, Tables
-10-11, batch 256, fused Adam, hopper-medium-v2 10k) and, with torch's thread
+Builds both stages with the recipe's own helpers (``torchrl_tels.trainer``; paper widths,
+Tables 10-11, batch 256, fused Adam, hopper-medium-v2 10k) and, with torch's thread
 count pinned, prints:
 
 - ms per phase of a policy step (value forward/backward/Adam, guide
@@ -14,8 +14,8 @@ count pinned, prints:
 
     python -m benchmarks.step_floor --threads 2
 
-The guide's value weight alpha is the recipe's (``recipes/config``, its default preset);
-``--override guide.alpha=0.01`` (any hydra override of the recipe) times another configuration.
+The configuration is the recipe's default (``recipes/config``); ``--override guide.alpha=0.01``
+(any hydra override of the recipe) times another one.
 
 A precision this CPU does not multiply natively (bf16 without AVX512-BF16/AMX)
 is timed over ``--emulated-steps`` steps only: it is tens of times slower.
@@ -29,14 +29,11 @@ import time
 
 import torch
 from torch.profiler import profile, ProfilerActivity
-from torchrl.objectives import SoftUpdate
 
 from benchmarks.harness import REPO
 from torchrl_tels.config import native_bf16_supported
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
-from torchrl_tels.envs import TSIDMEncoderTransform
-from torchrl_tels.modules import make_guide_policy, make_latent_value, TSIDM
-from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
+from torchrl_tels.trainer import make_stage2, make_tsidm, make_tsidm_loss
 from torchrl_tels.training import sum_losses
 
 MATMULS = ("aten::mm", "aten::addmm", "aten::bmm")
@@ -50,27 +47,17 @@ def recipe_config(overrides: list[str]):
         return compose(config_name="config", overrides=overrides)
 
 
-def make_stages(data, alpha: float):
-    """The recipe's two steps as closures that take a timing dict and add ms per phase to it."""
-    tsidm = TSIDM(data["observation"].shape[-1], data["action"].shape[-1])
-    tsidm.fit_state_normalization(data["observation"])
-    tsidm_loss = TSIDMLoss(tsidm, beta=1.0, check_inputs=False)
-    tsidm_optim = torch.optim.Adam(tsidm_loss.parameters(), lr=3e-4, fused=True)
-    tsidm_buffer = make_offline_replay_buffer(data, 256)
-
-    frozen = TSIDM(data["observation"].shape[-1], data["action"].shape[-1])
-    frozen.fit_state_normalization(data["observation"])
-    frozen.eval().requires_grad_(False)
-    buffer = make_offline_replay_buffer(data, 256, write_transforms=[TSIDMEncoderTransform(frozen)])
-    latent_dim = frozen.latent_state_dim
-    value_net, guide = make_latent_value(latent_dim), make_guide_policy(latent_dim, "deterministic")
-    value_loss = LatentExpectileLoss(value_net, expectile=0.7, check_inputs=False)
-    value_loss.make_value_estimator(gamma=0.99)
-    guide_loss = TSymGuideLoss(guide, value_net, frozen, alpha=alpha, eta=1.0, check_inputs=False)
-    guide_loss.make_value_estimator(gamma=0.99)
-    target = SoftUpdate(value_loss, tau=0.05)
-    value_optim = torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=1e-4, fused=True)
-    guide_optim = torch.optim.Adam(guide_loss.parameters(), lr=1e-4, fused=True)
+def make_stages(cfg, data):
+    """The recipe's two steps, built by its own helpers, as closures that add ms per phase to a dict."""
+    tsidm = make_tsidm(cfg, data)
+    beta = 1.0 if cfg.tsidm.beta == "auto" else float(cfg.tsidm.beta)
+    tsidm_loss = make_tsidm_loss(cfg, tsidm, beta)
+    tsidm_optim = torch.optim.Adam(tsidm_loss.parameters(), lr=cfg.tsidm.lr, fused=True)
+    tsidm_buffer = make_offline_replay_buffer(data, cfg.tsidm.batch_size)
+    stage2 = make_stage2(cfg, data, make_tsidm(cfg, data), action_spec=None)
+    buffer, target = stage2.buffer, stage2.target_updater
+    value_loss, value_optim = stage2.value_loss, stage2.value_optim
+    guide_loss, guide_optim = stage2.guide_loss, stage2.guide_optim
 
     def timed(times, name, start):
         now = time.perf_counter()
@@ -137,14 +124,14 @@ def main():
     parser.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
     parser.add_argument("--override", nargs="*", default=[], help="hydra overrides of the recipe's config")
     args = parser.parse_args()
-    alpha = float(recipe_config(args.override).guide.alpha)
+    cfg = recipe_config(args.override)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     native = native_bf16_supported()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, CPU capability "
           f"{torch.backends.cpu.get_cpu_capability()}, native bf16: {native}; paper widths, batch 256, "
-          f"alpha {alpha:g}, hopper-medium-v2 10k; median of {args.repeats} interleaved blocks")
-    stages = make_stages(load_dataset("hopper-medium-v2-10k"), alpha)
+          f"alpha {cfg.guide.alpha:g}, hopper-medium-v2 10k; median of {args.repeats} interleaved blocks")
+    stages = make_stages(cfg, load_dataset("hopper-medium-v2-10k"))
 
     def steps_for(precision):
         return args.steps if precision == "fp32" or native else args.emulated_steps

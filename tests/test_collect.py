@@ -238,3 +238,25 @@ def test_recipe_rejects_bad_policy_spec():
     with pytest.raises(SystemExit, match="'random' or 'module:attribute'"):
         recipe.load_policy("policy.pt")
     assert recipe.load_policy("random") is None
+
+
+def test_own_minari_dataset_trains_and_evaluates_where_it_was_recorded(minari_root, tmp_path, capsys):
+    """A user's dataset with no registered task: the recipe evaluates in the env the dataset recorded,
+    and, with no reference scores, reports raw returns."""
+    from hydra import compose, initialize_config_dir
+
+    collect_minari_dataset("Hopper-v4", "local/hopper/random-v0", n_steps=600, seed=0)
+    spec = importlib.util.spec_from_file_location("tels_recipe", REPO_ROOT / "recipes" / "tels_offline.py")
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    overrides = ["budget=smoke", "threads=1", "dataset.name=local/hopper/random-v0", f"run_dir={tmp_path / 'run'}",
+                 "tsidm.steps=20", "tsidm.batch_size=64", "policy.steps=20", "policy.batch_size=64",
+                 "eval.interval=20", "eval.episodes=2", "eval.last_n=1", "eval.max_steps=30"]
+    with initialize_config_dir(str(REPO_ROOT / "recipes" / "config"), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    results = recipe.main.__wrapped__(cfg)
+    assert results["env"] == "Hopper-v4" and results["task"] == "local/hopper/random-v0"
+    assert results["score_kind"] == "undiscounted return"
+    evaluation = results["evaluations"][-1]
+    assert evaluation["scores"] == evaluation["returns"]
+    assert results["final_normalized_score_mean"] == pytest.approx(sum(evaluation["returns"]) / 2, rel=1e-6)

@@ -34,6 +34,7 @@ from torchrl_tels.config import ConfigError, training_config, validate_config
 from torchrl_tels.data import embedded_dataset_path
 from torchrl_tels.modules import TSIDM
 from torchrl_tels.record import RunLogger
+from torchrl_tels.errors import TelsError
 from torchrl_tels.training import write_json, write_text
 from torchrl_tels.training import (
     NonFiniteLossError,
@@ -74,7 +75,7 @@ def no_minari_download(monkeypatch):
 
 def compose_cfg(*overrides: str):
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        return compose("config", overrides=["budget=smoke", *overrides])
+        return compose("config", overrides=["domain=paper", "budget=smoke", *overrides])
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -84,11 +85,11 @@ def _files(folder: Path) -> dict[str, bytes]:
 
 
 def expect_error(recipe, capsys, run_dir: Path, *overrides: str) -> str:
-    """Runs the recipe's entry point, checks it ends with one ``error:`` line and wrote nothing half.
+    """Runs the recipe's entry point, checks it ends with one ``error:`` line and wrote nothing.
 
     Returns the message. Files present in ``run_dir`` before (a checkpoint under
-    test) must be left byte for byte; the only new file allowed is the
-    resolved ``config.yaml`` (written at start-up, whole).
+    test) must be left byte for byte, and no file may be added: a refused start
+    is refused before the run folder, its config or its logs are created.
     """
     cfg = compose_cfg(f"run_dir={run_dir}", *SMALL, *overrides)
     before = _files(run_dir)
@@ -102,7 +103,9 @@ def expect_error(recipe, capsys, run_dir: Path, *overrides: str) -> str:
     assert "Traceback" not in err
     after = _files(run_dir)
     assert {name: after[name] for name in before} == before, "an existing file was changed"
-    assert set(after) - set(before) <= {"config.yaml"}, sorted(set(after) - set(before))
+    assert set(after) == set(before), sorted(set(after) - set(before))
+    if not before:
+        assert not run_dir.exists() or not any(run_dir.iterdir()), sorted(p.name for p in run_dir.iterdir())
     return lines[0][len("error: "):]
 
 
@@ -308,7 +311,7 @@ def run_cli(tmp_path: Path, *overrides: str, cwd: Path = REPO_ROOT) -> subproces
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
-        [sys.executable, str(RECIPE), "budget=smoke", "threads=1", *SMALL, *overrides],
+        [sys.executable, str(RECIPE), "domain=paper", "budget=smoke", "threads=1", *SMALL, *overrides],
         cwd=cwd, env=env, capture_output=True, text=True, timeout=120,
     )
 
@@ -434,23 +437,33 @@ def test_checkpoint_refuses_non_finite_weights(tmp_path):
     assert load_training_state(path)["step"] == 25
 
 
-def test_is_user_error():
-    assert is_user_error(ConfigError("x"))
-    assert is_user_error(NonFiniteLossError("x"))
+def test_user_errors_are_tels_errors():
+    """The CLI shows a TelsError as one line; anything else (a bug, torch) keeps its traceback."""
+    assert is_user_error(ConfigError("x")) and is_user_error(NonFiniteLossError("x"))
     with pytest.raises(ConfigError) as info:
         validate_config(compose_cfg("run_dir=x", "value.gamma=2"))
     assert is_user_error(info.value)
-    with pytest.raises(ValueError) as info:  # our own ValueError (an unknown task)
+    with pytest.raises(ValueError) as info:  # an unknown task: a TelsError that is also a ValueError
         from torchrl_tels.envs import get_task
 
         get_task("no-such-task")
-    assert is_user_error(info.value)
+    assert isinstance(info.value, TelsError)
     with pytest.raises(RuntimeError) as info:
         torch.zeros(2).view(3)
     assert not is_user_error(info.value)
     with pytest.raises(ValueError) as info:  # a ValueError from inside torch is a bug: shown in full
         torch.nn.functional.cross_entropy(torch.zeros(2, 3), torch.zeros(3, dtype=torch.long))
     assert not is_user_error(info.value)
+
+
+def test_actions_outside_the_env_bounds_are_refused(recipe, capsys, tmp_path):
+    arrays = hopper_arrays()
+    arrays["actions"] = arrays["actions"] * 5
+    outside = int((np.abs(arrays["actions"]) > 1).any(-1).sum())
+    path = write_npz(tmp_path / "hopper_x5.npz", arrays)
+    message = expect_error(recipe, capsys, tmp_path / "run", f"dataset.name={path}", "dataset.task=hopper-medium-v2")
+    assert f"{outside} of {len(arrays['actions'])} actions lie outside the action bounds of Hopper-v4" in message
+    assert "[-1, 1]" in message
 
 
 # ------------------------------------------------------------------- wandb

@@ -218,8 +218,10 @@ def check_folder_creatable(folder: str | os.PathLike, name: str = "run_dir") -> 
     """Checks, without creating anything, that ``folder`` exists writable or can be created."""
     folder = Path(folder).absolute()
     existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
-    if existing is None or not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(f"{name} {folder} is not writable: {existing} is not a writable folder.")
+    if existing is None or not existing.is_dir():
+        raise ConfigError(f"{name} {folder} is not writable: Not a directory.")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{name} {folder} is not writable: Permission denied.")
     return folder
 
 

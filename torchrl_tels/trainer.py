@@ -51,6 +51,7 @@ __all__ = [
     "make_stage1",
     "make_stage2",
     "make_tsidm",
+    "make_tsidm_loss",
     "resolve_task",
     "tsidm_steps",
 ]
@@ -232,6 +233,13 @@ def make_tsidm(cfg, data: TensorDictBase) -> TSIDM:
     return tsidm
 
 
+def make_tsidm_loss(cfg, tsidm: TSIDM, beta: float) -> TSIDMLoss:
+    """Eq. (7) with the config's β, Table 3 ablation, norm reduction and latent-scale option."""
+    t = cfg.tsidm
+    return TSIDMLoss(tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction,
+                     relative=t.latent_scale == "relative", check_inputs=False)
+
+
 def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None):
     """Stage 1 for one β (Eq. 7): a trained TS-IDM, its final losses and its loss history.
 
@@ -239,8 +247,7 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     """
     t = cfg.tsidm
     tsidm = make_tsidm(cfg, data)
-    loss_module = TSIDMLoss(tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction,
-                            relative=t.latent_scale == "relative", check_inputs=False)
+    loss_module = make_tsidm_loss(cfg, tsidm, beta)
     optim = torch.optim.Adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
     buffer = make_offline_replay_buffer(data, t.batch_size)
     total = tsidm_steps(cfg, len(data))

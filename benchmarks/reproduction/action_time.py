@@ -26,8 +26,7 @@ import torch
 
 from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
 from torchrl_tels.checkpoint import file_sha256
-from torchrl_tels.data import get_task, normalized_score
-from torchrl_tels.envs import evaluate_policy, make_eval_env
+from torchrl_tels.envs import evaluate_policy, get_task, make_eval_env, normalized_score
 from torchrl_tels.modules import load_tels_actor
 
 VARIANTS = {

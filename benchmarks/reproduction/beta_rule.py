@@ -67,7 +67,7 @@ def record(task: str, seed: int, beta: float, threads: int, force: bool = False)
         command = run_recipe([
             f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true", "logger.wandb_mode=disabled",
             f"tsidm.steps={TSIDM_STEPS}", f"tsidm.beta={beta:g}",
-            "optim.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"], threads)
+            "policy.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"], threads)
     recorded_beta = json.loads((run_dir / "results.json").read_text())["beta"]
     if abs(recorded_beta - beta) > 1e-12:
         raise ValueError(f"{run_dir} trained stage 1 with beta={recorded_beta}, not {beta}")

@@ -1,20 +1,16 @@
 """One run of the reproduction study: the TELS recipe on one task and seed with a named set of overrides.
 
     python -m benchmarks.reproduction.run_choice --name alpha0.1 --task hopper-medium-v2-10k --seed 0 \
-        --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10 \
-        --override guide.alpha=0.1
+        --budget budget=study eval.episodes=10 --override guide.alpha=0.1
 
 writes benchmarks/reproduction/results/<name>/<task>/seed<k>.json (the run's results.json plus
-the command, the guide options the preset chose and the machine), and skips the run if that file
+the command, the guide options the config chose and the machine), and skips the run if that file
 exists unless ``--force`` (which rewrites it from the run folder under ``runs/reproduction/``,
 resumed rather than retrained). The baseline of a comparison is the same budget with no
---override (the recipe's defaults, name it "default"). The ``mujoco`` preset departs from the
-paper's text four times (README, "Deviations from the paper"): it re-encodes the guide's proposal,
-sets beta = 0.01 and alpha = 1, and trains at the study's shared budget (the ``--budget`` above,
-which comparisons still pass explicitly). So the paper-literal arm needs ``--override
-guide.reencode_proposal=false tsidm.beta=1 guide.alpha=0.01``; the ``reencode`` arm's runs used
-``--override guide.reencode_proposal=true tsidm.beta=1 guide.alpha=0.01`` in today's terms, and
-the ``beta0.01`` arm's ``--override guide.reencode_proposal=true guide.alpha=0.01``.
+--override (the recipe's defaults, name it "default"). The ``domain=mujoco`` departures from the
+paper are README's deviation table; ``--override domain=paper`` gives the paper-literal arm.
+Runs made before the config had groups recorded their budget as ``tsidm.steps=3000
+optim.steps=5000 eval.interval=500 eval.episodes=10``, which ``budget=study`` now sets.
 """
 from __future__ import annotations
 
