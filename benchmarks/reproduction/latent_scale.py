@@ -1,0 +1,122 @@
+"""The latent-scale fixes of Eq. (7) against the preset, the paper's reading and BC, with the mechanism's numbers.
+
+    python -m benchmarks.reproduction.latent_scale
+
+prints one table per dataset (``benchmarks.reproduction.tables`` writes it into RESULTS.md). Rows are
+arms at the shared budget (3k TS-IDM, 5k policy steps, ten evaluations of ten episodes):
+
+- ``paper``: the paper's reading (the baseline grid's TELS runs, Eq. 7 and Eq. 11 as written);
+- ``preset``: the ``mujoco`` domain before the fix (re-encoding, beta = 0.01, alpha = 1; arms
+  ``alpha1`` on the Intel Xeon, ``alpha1_epyc`` on halfcheetah);
+- ``standardized`` / ``relative``: beta = 1, ``tsidm.latent_scale`` set, the guide's T-symmetry term
+  divided by the data's mean squared latent step (``guide.tsym_relative=true``), alpha = 1 and re-encoding;
+- ``BC``: the baseline grid's BC on the same file and budget.
+
+Columns: each seed's final score (mean of the ten evaluations), the mean, the mean of the second half of
+the evaluations, the change from BC and from the preset (means over the seeds both arms have), and,
+where the runs recorded them, the trained TS-IDM's latent RMS spread and RMS step on the data, the
+guide's T-symmetry term over its state term at the end of training, and how many evaluations
+were flagged frozen.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+
+from benchmarks.reproduction import summary
+
+#: (row label, arm folders under results/ tried in order, or a grid method)
+ARMS = (
+    ("paper", ("grid:tels",)),
+    ("preset", ("alpha1", "alpha1_epyc")),
+    ("standardized", ("scale_standardized",)),
+    ("relative", ("scale_relative",)),
+    ("BC", ("grid:bc",)),
+)
+HELD_OUT = ("halfcheetah-v5-sac-medium-10k", (("standardized", ("heldout_standardized",)),))
+
+
+def _runs(sources: tuple[str, ...], task: str) -> dict[int, dict]:
+    for source in sources:
+        if source.startswith("grid:"):
+            folder = summary.GRID / source[len("grid:"):] / task
+            found = summary.seed_results(folder, summary.on_grid_budget)
+        else:
+            found = summary.seed_results(summary.HERE / "results" / source / task, lambda r: True)
+        if found:
+            return found
+    return {}
+
+
+def _final_ratio(result: dict) -> float | None:
+    history = result.get("diagnostics", {}).get("guide_history", {}).get("guide/tsym_to_state_ratio")
+    return statistics.mean(v for _, v in history[-5:]) if history else None
+
+
+def _mean(values) -> str:
+    values = [v for v in values if v is not None]
+    return f"{statistics.mean(values):.3g}" if values else "—"
+
+
+def _change(runs: dict[int, dict], other: dict[int, dict]) -> str:
+    seeds = sorted(set(runs) & set(other))
+    if not seeds:
+        return "—"
+    diffs = [runs[s]["final_normalized_score_mean"] - other[s]["final_normalized_score_mean"] for s in seeds]
+    ups = sum(d > 0 for d in diffs)
+    return f"{statistics.mean(diffs):+.1f} ({ups}/{len(diffs)} up)"
+
+
+def _frozen_cell(runs, seeds, frozen, has_frozen) -> str:
+    if not has_frozen:
+        return "—"
+    return f"{sum(frozen)} of {sum(len(runs[s]['evaluations']) for s in seeds)}"
+
+
+def task_table(task: str, arms=ARMS) -> list[str]:
+    found = {label: _runs(sources, task) for label, sources in arms}
+    bc, preset = _runs(("grid:bc",), task), _runs(("alpha1", "alpha1_epyc"), task)
+    lines = [f"**{task}**", "",
+             "| arm | seeds | final score per seed | mean | second-half mean | vs BC | vs preset | latent_rms | "
+             "latent_step_rms | guide ℓ_Tsym / state term | frozen evaluations |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for label, runs in found.items():
+        if not runs:
+            continue
+        seeds = sorted(runs)
+        scores = [runs[s]["final_normalized_score_mean"] for s in seeds]
+        halves = [runs[s].get("second_half_score_mean") for s in seeds]
+        diagnostics = [runs[s].get("diagnostics", {}) for s in seeds]
+        frozen = [sum(e.get("frozen", False) for e in runs[s]["evaluations"]) for s in seeds]
+        has_frozen = any("frozen" in e for s in seeds for e in runs[s]["evaluations"])
+        lines.append(
+            f"| {label} | {', '.join(map(str, seeds))} | {', '.join(f'{x:.1f}' for x in scores)} | "
+            f"**{statistics.mean(scores):.1f}** | {_mean(halves)} | "
+            f"{'—' if label == 'BC' else _change(runs, bc)} | {'—' if label == 'preset' else _change(runs, preset)} | "
+            f"{_mean(d.get('latent_rms') for d in diagnostics)} | {_mean(d.get('latent_step_rms') for d in diagnostics)} | "
+            f"{_mean(_final_ratio(runs[s]) for s in seeds)} | "
+            f"{_frozen_cell(runs, seeds, frozen, has_frozen)} |")
+    return lines + [""]
+
+
+def report() -> str:
+    lines = []
+    for task in summary.TASKS:
+        lines += task_table(task)
+    task, arms = HELD_OUT
+    if any(_runs(sources, task) for _, sources in arms):
+        lines += ["Held out from every choice of the study (10 episodes of the HalfCheetah-v5 SAC set, "
+                  "evaluated on HalfCheetah-v5 with the halfcheetah references):", ""]
+        lines += task_table(task, arms)
+    return "\n".join(lines)
+
+
+def main():
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
+    parser.parse_args()
+    print(report())
+
+
+if __name__ == "__main__":
+    main()
