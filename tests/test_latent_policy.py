@@ -332,3 +332,31 @@ def test_saved_policy_keeps_its_actor_options(tmp_path):
         # An explicit argument wins over the saved option.
         overridden = load_tels_actor(tmp_path / "policy.pt", tsidm, reencode_proposal=False)(td.clone())["action"]
     torch.testing.assert_close(overridden, plain)
+
+
+@pytest.mark.parametrize("mode", ["deterministic", "stochastic"])
+def test_tsym_weight_and_reference_scale_the_guide_regularizer(mode):
+    """loss_tsym = w * mean_i Eq. (6)_i / d_ref; for the deterministic guide, its share of the state term."""
+    tsidm = small_tsidm()
+    td = latent_batch(tsidm)
+    torch.manual_seed(3)
+    plain, guide, value = make_guide_loss(mode, tsidm)
+    scaled = TSymGuideLoss(guide, value, tsidm, mode=mode, tsym_weight=7.0, tsym_reference=0.25)
+    scaled.make_value_estimator(gamma=0.99)
+    torch.manual_seed(4)
+    a = plain(td)
+    torch.manual_seed(4)
+    b = scaled(td)
+    torch.testing.assert_close(b["loss_tsym"], a["loss_tsym"] * 7.0 / 0.25)
+    if mode == "deterministic":
+        proposal = guide(td.clone())["guide_latent"]
+        with torch.no_grad():
+            z_a = tsidm.infer_latent_action(td["latent"], proposal)
+            z_dot = tsidm.latent_forward(td["latent"], z_a)
+            eq6 = (z_dot + tsidm.latent_reverse(td["latent"] + z_dot, z_a)).pow(2).sum(-1).mean()
+        torch.testing.assert_close(a["loss_tsym"], eq6)
+        torch.testing.assert_close(b["tsym_to_state_ratio"], b["loss_tsym"] / b["loss_guide_state"])
+        step = (proposal - td["latent"]).pow(2).sum(-1).mean().sqrt()
+        torch.testing.assert_close(a["guide_step_rms"], step)
+    with pytest.raises(ValueError, match="tsym_reference"):
+        TSymGuideLoss(guide, value, tsidm, mode=mode, tsym_reference=0.0)
