@@ -34,7 +34,8 @@ ARMS = (
     ("relative", ("scale_relative",)),
     ("BC", ("grid:bc",)),
 )
-HELD_OUT = ("halfcheetah-v5-sac-medium-10k", (("standardized", ("heldout_standardized",)),))
+HELD_OUT = ("halfcheetah-v5-sac-medium-10k",
+            (("preset", ("heldout_preset",)), ("standardized", ("heldout_standardized",)), ("BC", ("heldout_bc",))))
 
 
 def _runs(sources: tuple[str, ...], task: str) -> dict[int, dict]:
@@ -76,7 +77,7 @@ def _frozen_cell(runs, seeds, frozen, has_frozen) -> str:
 
 def task_table(task: str, arms=ARMS) -> list[str]:
     found = {label: _runs(sources, task) for label, sources in arms}
-    bc, preset = _runs(("grid:bc",), task), _runs(("alpha1", "alpha1_epyc"), task)
+    bc, preset = found.get("BC", {}), found.get("preset", {})
     lines = [f"**{task}**", "",
              "| arm | seeds | final score per seed | mean | second-half mean | vs BC | vs preset | latent_rms | "
              "latent_step_rms | guide ℓ_Tsym / state term | frozen evaluations |",
