@@ -222,3 +222,31 @@ def test_bad_data_is_refused_with_a_tels_error():
     with pytest.raises(MonitorError, match=r"no 'next' entry"):
         monitor(TensorDict({"observation": torch.zeros(2, OBS_DIM), "action": torch.zeros(2, 3)}, [2]))
     assert issubclass(MonitorError, TelsError) and issubclass(MonitorError, ValueError)
+
+
+# ------------------------------------------------------- the recipe's final evaluation
+def test_evaluate_records_the_monitor_along_the_episodes():
+    from omegaconf import OmegaConf
+
+    from torchrl_tels.envs import get_task, rollout_episodes
+    from torchrl_tels.modules import make_guide_policy, make_tels_actor
+    from torchrl_tels.trainer import evaluate
+
+    tsidm = small_tsidm()
+    env = GymEnv("Hopper-v4")
+    actor = make_tels_actor(tsidm, make_guide_policy(LATENT_DIM, num_cells=(16,)), env.action_spec)
+    cfg = OmegaConf.create({"seed": 0, "eval": {"episodes": 2, "max_steps": 30}})
+    monitor = calibrated(tsidm, quantile=0.5)
+    stats = {"latent_step_rms": 1.0, "data_action_std": 1.0}
+    record = evaluate(cfg, actor, env, get_task("hopper-medium-v2-10k"), 7, stats, monitor=monitor)["monitor"]
+    assert "monitor" not in evaluate(cfg, actor, env, get_task("hopper-medium-v2-10k"), 7, stats)
+    # the same seeded episodes, scored here by hand
+    episodes = list(rollout_episodes(actor, env, 2, seed=7, max_steps=30))
+    expected = [hand_scores(tsidm, r["observation"], r["action"], r["next", "observation"])["tsym_inconsistency"]
+                for r in episodes]
+    assert [len(s) for s in record["scores"]] == [len(e) for e in expected]
+    for scores, hand in zip(record["scores"], expected):
+        torch.testing.assert_close(torch.tensor(scores), hand)
+    flagged = torch.cat(expected) > monitor.threshold
+    assert record["ood_fraction"] == pytest.approx(flagged.float().mean().item())
+    assert record["threshold"] == float(monitor.threshold) and record["quantile"] == 0.5
