@@ -250,3 +250,31 @@ def test_evaluate_records_the_monitor_along_the_episodes():
     flagged = torch.cat(expected) > monitor.threshold
     assert record["ood_fraction"] == pytest.approx(flagged.float().mean().item())
     assert record["threshold"] == float(monitor.threshold) and record["quantile"] == 0.5
+
+
+# ---------------------------------------------------------- the AUROC benchmark's helpers
+def test_auroc_is_the_mann_whitney_statistic_on_a_hand_computed_case():
+    from benchmarks.monitor_auroc import auroc
+
+    # negatives 1, 2, 3; positives 2, 4. Pairs (pos, neg): 2>1 win, 2=2 tie, 2<3 loss; 4 beats all three.
+    # (1 + 0.5 + 0 + 3) / (2 * 3) = 0.75
+    assert auroc([1, 2, 3], [2, 4]) == pytest.approx(0.75)
+    assert auroc([3, 1, 2], [4, 2]) == pytest.approx(0.75)  # order does not matter
+    assert auroc([0, 1], [2, 3]) == 1.0 and auroc([2, 3], [0, 1]) == 0.0 and auroc([1, 1], [1]) == 0.5
+    g = torch.Generator().manual_seed(0)
+    neg, pos = torch.randn(300, generator=g), torch.randn(200, generator=g) + 0.5
+    brute = ((pos[:, None] > neg[None]).float() + 0.5 * (pos[:, None] == neg[None]).float()).mean().item()
+    assert auroc(neg.numpy(), pos.numpy()) == pytest.approx(brute)
+    with pytest.raises(ValueError, match="NaN"):
+        auroc([1.0, float("nan")], [2.0])
+
+
+def test_trajectory_split_keeps_whole_trajectories():
+    from benchmarks.monitor_auroc import split_trajectories
+
+    episode = torch.repeat_interleave(torch.arange(20), torch.arange(1, 21))  # lengths 1..20, 210 rows
+    data = TensorDict({"episode": episode, "row": torch.arange(len(episode))}, [len(episode)])
+    train, held = split_trajectories(data, 0.8, seed=0)
+    assert sorted(torch.cat([train["row"], held["row"]]).tolist()) == list(range(len(episode)))
+    assert not set(train["episode"].tolist()) & set(held["episode"].tolist())
+    assert 0.8 * len(episode) <= len(train) < 0.8 * len(episode) + 20
