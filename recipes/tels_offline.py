@@ -10,8 +10,9 @@ frozen encoder and trains the latent value (Eq. 8) and the guide policy
 (Eq. 9 or 10); the policy acts through Eq. (11). Everything a run produces
 lands in ``run_dir``: the resolved config, CSV metrics, ``tsidm.pt``,
 ``state.pt`` (for ``resume=true``), ``policy.pt`` (the guide; with ``tsidm.pt``
-it rebuilds the actor: ``torchrl_tels.modules.load_tels_actor``), ``results.json``
-and PNG plots. A bad config, dataset or checkpoint stops the run before
+it rebuilds the actor: ``torchrl_tels.modules.load_tels_actor``), ``monitor.pt``
+(the T-symmetry consistency monitor, calibrated on the training data),
+``results.json`` and PNG plots. A bad config, dataset or checkpoint stops the run before
 ``run_dir`` is created.
 """
 from __future__ import annotations
@@ -78,6 +79,7 @@ def train(cfg: DictConfig) -> dict:
     # Line 6: encode the dataset with the frozen φ_s; build V (Eq. 8), π_g (Eq. 9/10), the actor (Eq. 11).
     env = make_eval_env(task.env_id)
     stage2 = make_stage2(cfg, data, tsidm, env.action_spec)
+    stage2.monitor.save(run_dir / "monitor.pt")  # calibrated on the training data; recipes/export_policy.py reads it
     start = 0
     if run.resumes("policy"):
         run.restore(run_dir / "state.pt", **stage2.modules())
@@ -96,8 +98,10 @@ def train(cfg: DictConfig) -> dict:
                     run.policy_history.setdefault(key, []).append((step + 1, value))
                 logger.log_scalars(scalars, step + 1)
             if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
-                with run.time("eval_s"):
-                    run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats))
+                with run.time("eval_s"):  # the final evaluation also records the consistency monitor
+                    monitor = stage2.monitor if step + 1 == cfg.policy.steps else None
+                    run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats,
+                                                    monitor=monitor))
                 logger.log_scalars({"eval/score": run.evaluations[-1]["score"],
                                     "eval/guide_step_rms": run.evaluations[-1]["guide_step_rms"]}, step + 1)
                 progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}")

@@ -335,11 +335,16 @@ def test_cli_run_writes_only_into_run_dir(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert list(launch.iterdir()) == []
     written = {p.name for p in (tmp_path / "run").iterdir()}
-    assert {"config.yaml", "results.json", "tsidm.pt", "policy.pt", "eval_scores.png"} <= written
+    assert {"config.yaml", "results.json", "tsidm.pt", "policy.pt", "eval_scores.png", "monitor.pt",
+            "monitor_scores.png"} <= written
     assert not written & {".hydra", "tels_offline.log"}
+    results = json.loads((tmp_path / "run" / "results.json").read_text())
     # two stage-1 steps still leave a final loss to pick beta by (it was nan under 10 steps)
-    (result,) = json.loads((tmp_path / "run" / "results.json").read_text())["beta_results"]
+    (result,) = results["beta_results"]
     assert math.isfinite(result["final_loss"]) and math.isfinite(result["final_sum"])
+    # the final evaluation's monitor record: a fraction, with the per-step scores left to the plot
+    assert 0 <= results["monitor"]["ood_fraction"] <= 1 and results["monitor"]["quantile"] == 0.99
+    assert "scores" not in results["evaluations"][-1]["monitor"]
 
 
 def test_cli_unwritable_output_folder(tmp_path):

@@ -7,7 +7,9 @@ would expect (``ValueError``, ``RuntimeError``, ...).
 """
 from __future__ import annotations
 
-__all__ = ["CheckpointError", "ConfigError", "DatasetError", "NonFiniteLossError", "TaskError", "TelsError"]
+__all__ = [
+    "CheckpointError", "ConfigError", "DatasetError", "MonitorError", "NonFiniteLossError", "TaskError", "TelsError",
+]
 
 
 class TelsError(Exception):
@@ -37,3 +39,8 @@ class CheckpointError(TelsError, RuntimeError):
 class NonFiniteLossError(TelsError, FloatingPointError):
     """A loss term, or a tensor about to be checkpointed, became NaN or inf: the run stops and
     the last good checkpoint stays as it was."""
+
+
+class MonitorError(TelsError, ValueError):
+    """The consistency monitor was misused or fed bad data: a flag asked of an uncalibrated
+    monitor, a TS-IDM whose sizes differ from the env's or the data's, a non-finite input."""

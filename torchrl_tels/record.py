@@ -105,6 +105,9 @@ def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm
     the last 10 of 20); ``second_half_score_mean`` averages the later half of all
     evaluations. ``diagnostics`` holds what shows whether T-symmetry did
     anything: the latent scale, the guide's T-symmetry share and proposed step.
+    ``monitor`` holds the consistency monitor's record of the final evaluation
+    (fraction of flagged steps, threshold); its per-step scores are plotted in
+    ``monitor_scores.png`` rather than stored.
     """
     import torch
 
@@ -116,6 +119,9 @@ def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm
     final = torch.tensor([e["score"] for e in last])
     later = evaluations[len(evaluations) // 2:]
     n_candidates = len(run.beta_results or [None])
+    monitor = evaluations[-1].get("monitor") if evaluations else None
+    monitor_summary = None if monitor is None else {k: v for k, v in monitor.items() if k != "scores"}
+    evaluations = [{**e, "monitor": monitor_summary} if "monitor" in e else e for e in evaluations]
     results = {
         "dataset": str(cfg.dataset.name),
         "task": task.name,
@@ -129,6 +135,7 @@ def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm
         "final_over_last_n_evaluations": len(last),
         "second_half_score_mean": sum(e["score"] for e in later) / max(len(later), 1),
         "evaluations": evaluations,
+        "monitor": monitor_summary,
         "diagnostics": {
             **latent_stats,
             "tsidm_history": {k: v for k, v in run.tsidm_history.items() if k.startswith("latent")},
@@ -151,6 +158,12 @@ def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm
                 run_dir / "policy_losses.png", title="latent value and guide losses; T-symmetry share", logy=True)
     plot_curves({"score": [(e["step"], e["score"]) for e in evaluations]}, run_dir / "eval_scores.png",
                 title=f"TELS on {cfg.dataset.name}", ylabel=results["score_kind"])
+    if monitor is not None and monitor.get("scores"):
+        longest = max(len(scores) for scores in monitor["scores"])
+        series = {f"episode {i}": list(enumerate(scores, 1)) for i, scores in enumerate(monitor["scores"])}
+        series[f"threshold (q={monitor['quantile']:g})"] = [(1, monitor["threshold"]), (longest, monitor["threshold"])]
+        plot_curves(series, run_dir / "monitor_scores.png", xlabel="env step", ylabel=monitor["score"], logy=True,
+                    title=f"consistency monitor, final evaluation: {monitor['ood_fraction']:.1%} of steps flagged")
     print(f"final score {results['final_normalized_score_mean']:.1f} ± {results['final_normalized_score_std']:.1f} "
           f"(mean of last {len(last)} evaluations; {results['score_kind']}); outputs in {run_dir}")
     return results

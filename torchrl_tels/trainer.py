@@ -10,7 +10,8 @@ here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
 * :func:`make_stage1` / :func:`fit_tsidm`: the TS-IDM and Eq. (7);
 * :func:`make_stage2`: the latent value (Eq. 8), the guide (Eq. 9/10), their
   optimizers and the actor of Eq. (11);
-* :func:`evaluate`: deterministic episodes with the diagnostics of a frozen policy.
+* :func:`evaluate`: deterministic episodes with the diagnostics of a frozen policy and,
+  when given the calibrated consistency monitor, its score along the episodes.
 """
 from __future__ import annotations
 
@@ -32,8 +33,9 @@ from torchrl_tels.config import check_same_run, training_config
 from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, latent_statistics, rollout_statistics
-from torchrl_tels.envs import get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform
-from torchrl_tels.errors import DatasetError, TaskError
+from torchrl_tels.envs import (get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform,
+                               TSymConsistencyMonitor)
+from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
 from torchrl_tels import training
@@ -60,6 +62,8 @@ TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_su
 # App. B.5 picks beta by "the lowest TS-IDM training loss": "unweighted" compares the four terms'
 # sum (ell_sum), "weighted" Eq. (7) itself (ell_total), which scales three terms by the candidate.
 SELECTION_KEYS = {"unweighted": "final_sum", "weighted": "final_loss"}
+#: The consistency monitor flags the transitions above this quantile of the training data's scores.
+MONITOR_QUANTILE = 0.99
 
 
 def autocast(cfg):
@@ -350,6 +354,7 @@ class Stage2:
     guide: Any
     actor_options: dict
     latent_stats: dict
+    monitor: TSymConsistencyMonitor | None = None
 
     def update(self, cfg, batch: TensorDictBase, step: int):
         """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V."""
@@ -374,7 +379,10 @@ class Stage2:
 
 
 def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
-    """Freezes the TS-IDM, encodes the data once (Algorithm 1, line 6) and builds V, π_g and the actor."""
+    """Freezes the TS-IDM, encodes the data once (Algorithm 1, line 6) and builds V, π_g and the actor.
+
+    Also calibrates the T-symmetry consistency monitor on the training data (:data:`MONITOR_QUANTILE`).
+    """
     tsidm.eval()
     tsidm.requires_grad_(False)
     data = data.clone()
@@ -384,6 +392,8 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     latent_stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
     latent_stats["data_action_std"] = data["action"].std(0).mean().item()
     print(f"latent scale: RMS spread {latent_stats['latent_rms']:.4g}, RMS step {latent_stats['latent_step_rms']:.4g}")
+    monitor = TSymConsistencyMonitor(tsidm)
+    monitor.calibrate(data, quantile=MONITOR_QUANTILE)
     torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
     value_net = make_latent_value(latent_dim, cfg.value.num_cells)
     guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells)
@@ -408,6 +418,7 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
         guide=guide,
         actor_options=actor_options,
         latent_stats=latent_stats,
+        monitor=monitor,
     )
 
 
@@ -416,25 +427,46 @@ def score(task: Task, episode_return: float) -> float:
     return normalized_score(task, episode_return) if task.has_reference_scores else episode_return
 
 
-def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict) -> dict:
+def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
+             monitor: TSymConsistencyMonitor | None = None) -> dict:
     """``eval.episodes`` deterministic episodes (seeded by run seed and step) and their diagnostics.
 
     Besides the returns and scores, records the guide's proposed latent step and the spread of
-    the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`).
+    the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`). With a
+    calibrated ``monitor``, ``"monitor"`` holds its score at every step of every episode and the
+    fraction of flagged steps.
     """
     actor.eval()
-    returns, lengths, behaviour = [], [], []
+    returns, lengths, behaviour, monitored = [], [], [], []
     for rollout in rollout_episodes(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
                                     seed=cfg.seed * 100_000 + step):
         returns.append(rollout["next", "reward"].sum().item())
         lengths.append(rollout.shape[-1])
         behaviour.append(rollout_statistics(rollout))
+        if monitor is not None:
+            monitored.append(rollout.select("observation", "action", ("next", "observation")))
     scores = [score(task, r) for r in returns]
     guide_step = sum(b["guide_step_rms"] for b in behaviour) / len(behaviour)
     action_std = sum(b["action_std"] for b in behaviour) / len(behaviour)
-    return {"step": step, "returns": returns, "lengths": lengths, "scores": scores,
-            "score": sum(scores) / len(scores), "guide_step_rms": guide_step, "action_std": action_std,
-            "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
-                                latent_stats["data_action_std"])}
+    result = {"step": step, "returns": returns, "lengths": lengths, "scores": scores,
+              "score": sum(scores) / len(scores), "guide_step_rms": guide_step, "action_std": action_std,
+              "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
+                                  latent_stats["data_action_std"])}
+    if monitor is not None:
+        result["monitor"] = _monitor_record(monitor, monitored)
+    return result
+
+
+def _monitor_record(monitor: TSymConsistencyMonitor, rollouts: list) -> dict:
+    """The monitor's score along each episode and the fraction of flagged steps; a monitor error
+    (a non-finite state) is recorded, not raised, so it never costs the finished training."""
+    record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile)}
+    try:
+        nexts = [monitor(rollout)["next"] for rollout in rollouts]
+    except MonitorError as err:
+        return {**record, "error": str(err)}
+    flags = torch.cat([n["ood"].reshape(-1) for n in nexts])
+    return {**record, "ood_fraction": flags.float().mean().item(),
+            "scores": [n["ood_score"].reshape(-1).tolist() for n in nexts]}
 
 

@@ -13,11 +13,13 @@ from torchrl_tels.envs.tasks import (
 )
 from torchrl_tels.envs import antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
 from torchrl_tels.envs.evaluation import evaluate_policy, make_eval_env, rollout_episodes
+from torchrl_tels.envs.monitor import TSymConsistencyMonitor
 from torchrl_tels.envs.transforms import TSIDMEncoderTransform
 
 __all__ = [
     "D4RL_REFERENCE_SCORES",
     "TSIDMEncoderTransform",
+    "TSymConsistencyMonitor",
     "Task",
     "evaluate_policy",
     "get_task",

@@ -253,6 +253,9 @@ def load_tels_actor(
             f"but the TS-IDM's latent state has {tsidm.latent_state_dim} dims: they come from different runs."
         )
     guide = make_guide_policy(payload["latent_dim"], payload["mode"], payload["num_cells"])
-    guide.load_state_dict(payload["state_dict"])
+    try:
+        guide.load_state_dict(payload["state_dict"])
+    except RuntimeError as err:
+        raise CheckpointError(f"guide policy {policy_path} does not match its own config: {err}") from None
     options = {**payload.get("actor_options", {}), **actor_kwargs}
     return make_tels_actor(tsidm, guide, action_spec, from_latent=from_latent, **options)

@@ -286,17 +286,21 @@ class TSIDM(nn.Module):
     # ------------------------------------------------------------ save/load
     CHECKPOINT_FORMAT = "torchrl_tels.tsidm/v1"
 
+    def checkpoint_payload(self, metadata: dict[str, Any] | None = None) -> dict[str, Any]:
+        """What :meth:`save` writes: format, config, weights (with the normalization) and ``metadata``.
+
+        Other checkpoints that carry a TS-IDM (the consistency monitor's) embed this dict.
+        """
+        return {
+            "format": self.CHECKPOINT_FORMAT,
+            "config": self.config(),
+            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+            "metadata": dict(metadata or {}),
+        }
+
     def save(self, path: str | os.PathLike, metadata: dict[str, Any] | None = None) -> None:
         """Writes config, weights (with the state normalization) and ``metadata`` atomically."""
-        atomic_save(
-            {
-                "format": self.CHECKPOINT_FORMAT,
-                "config": self.config(),
-                "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-                "metadata": dict(metadata or {}),
-            },
-            path,
-        )
+        atomic_save(self.checkpoint_payload(metadata), path)
 
     @classmethod
     def load(
@@ -312,17 +316,29 @@ class TSIDM(nn.Module):
         a TS-IDM trained for another env is refused with a clear error.
         """
         payload = load_checkpoint(path, cls.CHECKPOINT_FORMAT)
+        return cls.from_payload(payload, path, observation_dim=observation_dim, action_dim=action_dim)
+
+    @classmethod
+    def from_payload(
+        cls,
+        payload: dict[str, Any],
+        source: str | os.PathLike,
+        *,
+        observation_dim: int | None = None,
+        action_dim: int | None = None,
+    ) -> "TSIDM":
+        """Rebuilds a TS-IDM from :meth:`checkpoint_payload`'s dict (read from ``source``), in eval mode."""
         config = payload["config"]
         for name, expected in (("observation_dim", observation_dim), ("action_dim", action_dim)):
             if expected is not None and int(config[name]) != int(expected):
                 raise CheckpointError(
-                    f"TS-IDM checkpoint {path} has {name}={config[name]}, but this "
+                    f"TS-IDM checkpoint {source} has {name}={config[name]}, but this "
                     f"environment/dataset has {name}={expected}: it was trained for another task."
                 )
         tsidm = cls(**config)
         try:
             tsidm.load_state_dict(payload["state_dict"])
         except RuntimeError as err:
-            raise CheckpointError(f"TS-IDM checkpoint {path} does not match its own config: {err}") from None
+            raise CheckpointError(f"TS-IDM checkpoint {source} does not match its own config: {err}") from None
         tsidm.metadata = payload.get("metadata", {})
         return tsidm.eval()

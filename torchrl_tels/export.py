@@ -1,0 +1,205 @@
+"""A finished run as standalone ``torch.export`` programs: the Eq. (11) actor and the consistency monitor.
+
+The programs are traced from the library's own modules (:func:`~torchrl_tels.modules.load_tels_actor`,
+:class:`~torchrl_tels.envs.TSymConsistencyMonitor`), so they compute exactly what those do and load
+with torch alone::
+
+    policy = torch.export.load("runs/a/export/policy.pt2").module()
+    action = policy(observation)                # (B, obs_dim) float32 -> (B, action_dim)
+    monitor = torch.export.load("runs/a/export/monitor.pt2").module()
+    score, ood = monitor(observation, action, next_observation)   # (B,), (B,) bool
+
+:func:`export_run` refuses a folder that is not a finished run, or whose checkpoints do not belong
+together, before anything is written; its files appear together, or not at all.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_tels.checkpoint import file_sha256
+from torchrl_tels.data import load_dataset
+from torchrl_tels.envs import make_eval_env, TSymConsistencyMonitor
+from torchrl_tels.envs.monitor import SCORE_KEY
+from torchrl_tels.errors import CheckpointError
+from torchrl_tels.modules import load_tels_actor, TSIDM
+
+__all__ = ["MonitorProgram", "PolicyProgram", "export_run", "onnx_missing"]
+
+POLICY_FILE, MONITOR_FILE, MANIFEST_FILE = "policy.pt2", "monitor.pt2", "export.json"
+
+
+class PolicyProgram(nn.Module):
+    """observation → action through a TELS actor (Eq. 11), in deterministic mode, as one tensor function.
+
+    The actor is the tensordict chain of :func:`~torchrl_tels.modules.make_tels_actor` (state
+    normalization, :math:`\\phi_s`, the guide, the re-encoding option, :math:`\\psi_a(h_{inv}(\\cdot))`,
+    clipping); this wrapper only moves a tensor in and out of a tensordict.
+    """
+
+    def __init__(self, actor, observation_key="observation", action_key="action") -> None:
+        super().__init__()
+        self.actor = actor.eval().requires_grad_(False)
+        self.observation_key, self.action_key = observation_key, action_key
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        td = TensorDict({self.observation_key: observation}, batch_size=observation.shape[:-1])
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return self.actor(td)[self.action_key]
+
+
+class MonitorProgram(nn.Module):
+    """(observation, action, next observation) → (``ood_score``, ``ood``) of a calibrated monitor."""
+
+    def __init__(self, monitor: TSymConsistencyMonitor) -> None:
+        super().__init__()
+        if not monitor.calibrated:
+            raise CheckpointError("the consistency monitor is not calibrated; calibrate it before exporting.")
+        self.monitor = monitor.eval()
+
+    def forward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor):
+        # No input checks in a traced program: they are data-dependent branches.
+        score = self.monitor.scores(observation, action, next_observation, check=False)[SCORE_KEY]
+        return score, self.monitor.is_ood(score, check=False)
+
+
+def onnx_missing() -> str | None:
+    """What is missing for ONNX files (``torch.onnx``'s exporter needs ``onnx`` and ``onnxscript``), or ``None``."""
+    missing = [name for name in ("onnx", "onnxscript") if importlib.util.find_spec(name) is None]
+    return f"{' and '.join(missing)} not installed" if missing else None
+
+
+def _read_results(run_dir: Path) -> dict:
+    if not run_dir.is_dir():
+        raise CheckpointError(f"{run_dir} is not a folder; pass the run folder of a finished run.")
+    results = run_dir / "results.json"
+    if not results.is_file():
+        raise CheckpointError(f"{run_dir} has no results.json: the run has not finished (or it is not a run "
+                              "folder); finish it with resume=true, then export.")
+    try:
+        payload = json.loads(results.read_text())
+    except (OSError, ValueError) as err:
+        raise CheckpointError(f"cannot read {results}: {err}") from None
+    if not isinstance(payload, dict) or not payload.get("env"):
+        raise CheckpointError(f"{results} does not name the run's environment ('env').")
+    return payload
+
+
+def _check_same_tsidm(monitor: TSymConsistencyMonitor, tsidm: TSIDM, path: Path) -> None:
+    theirs, ours = monitor.tsidm.state_dict(), tsidm.state_dict()
+    if theirs.keys() != ours.keys() or any(not torch.equal(theirs[k], ours[k]) for k in ours):
+        raise CheckpointError(f"{path} was calibrated with another TS-IDM than the run's tsidm.pt; "
+                              "recalibrate with --calibrate DATASET.")
+
+
+def _export(module: nn.Module, example: tuple[torch.Tensor, ...]) -> torch.export.ExportedProgram:
+    batch = torch.export.Dim("batch")
+    return torch.export.export(module, example, dynamic_shapes=tuple({0: batch} for _ in example))
+
+
+def export_run(
+    run_dir: str | os.PathLike,
+    out: str | os.PathLike | None = None,
+    *,
+    onnx: bool = False,
+    calibrate: str | None = None,
+    quantile: float = 0.99,
+    log: Callable[[str], Any] = print,
+) -> dict[str, Path]:
+    """Writes ``policy.pt2`` (and ``monitor.pt2``, ``export.json``, ONNX files) of a finished run into ``out``.
+
+    ``out`` defaults to ``run_dir/export``. The monitor is exported when ``run_dir/monitor.pt`` holds a
+    calibrated one made from the run's TS-IDM, or when ``calibrate`` names a dataset to calibrate it on at
+    ``quantile`` (its ``monitor.pt`` then goes into ``out``). With ``onnx``, ``policy.onnx``/``monitor.onnx``
+    are written too when the exporter's packages are installed (else ``log`` says so).
+
+    Everything is checked and traced before ``out`` is touched; the files are written into a hidden
+    sibling folder and moved into place, so a failure leaves ``out`` as it was (absent, if it was).
+    Returns the written paths by file name.
+    """
+    run_dir = Path(run_dir)
+    results = _read_results(run_dir)
+    out = Path(out) if out is not None else run_dir / "export"
+    if not out.parent.is_dir():
+        raise CheckpointError(f"the folder {out.parent} for the export does not exist.")
+    if out.exists() and not out.is_dir():
+        raise CheckpointError(f"{out} exists and is not a folder.")
+
+    env = make_eval_env(results["env"])
+    observation_dim = int(env.observation_spec["observation"].shape[-1])
+    action_dim = int(env.action_spec.shape[-1])
+    tsidm_path, policy_path = run_dir / "tsidm.pt", run_dir / "policy.pt"
+    tsidm = TSIDM.load(tsidm_path, observation_dim=observation_dim, action_dim=action_dim)
+    actor = load_tels_actor(policy_path, tsidm, env.action_spec)
+
+    monitor, monitor_source = None, None
+    if calibrate is not None:
+        monitor = TSymConsistencyMonitor(tsidm)
+        monitor.calibrate(load_dataset(calibrate), quantile=quantile)
+        monitor_source = str(calibrate)
+    elif (run_dir / "monitor.pt").is_file():
+        monitor = TSymConsistencyMonitor.load(run_dir / "monitor.pt", observation_dim=observation_dim,
+                                              action_dim=action_dim)
+        _check_same_tsidm(monitor, tsidm, run_dir / "monitor.pt")
+        monitor_source = "monitor.pt"
+    else:
+        log(f"no calibrated monitor in {run_dir} (monitor.pt) and no --calibrate DATASET: exporting the policy only")
+
+    observation = tsidm.obs_loc.expand(2, observation_dim).clone()
+    programs = {POLICY_FILE: _export(PolicyProgram(actor), (observation,))}
+    if monitor is not None:
+        action = torch.zeros(2, action_dim)
+        # distinct tensors: an input passed twice would be traced as one
+        programs[MONITOR_FILE] = _export(MonitorProgram(monitor), (observation, action, observation.clone()))
+    want_onnx = onnx and (reason := onnx_missing()) is None
+    if onnx and not want_onnx:
+        log(f"--onnx: {reason}; skipping the ONNX files (pip install onnx onnxscript)")
+
+    low, high = env.action_spec.low, env.action_spec.high
+    manifest = {
+        "env": results["env"],
+        "observation_dim": observation_dim,
+        "action_dim": action_dim,
+        "action_low": low.tolist(),
+        "action_high": high.tolist(),
+        "inputs": {"policy": "observation (B, observation_dim) float32 -> action (B, action_dim)",
+                   "monitor": "observation, action, next_observation (B, .) float32 -> ood_score (B,), ood (B,) bool"},
+        "sources": {name: file_sha256(run_dir / name) for name in ("tsidm.pt", "policy.pt")},
+        "monitor": None if monitor is None else {
+            "score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile),
+            "calibrated_from": monitor_source},
+        "torch": torch.__version__,
+    }
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        staging.chmod(0o777 & ~umask)  # mkdtemp makes it private; the export folder is an ordinary one
+        for name, program in programs.items():
+            torch.export.save(program, staging / name)
+            if want_onnx:
+                torch.onnx.export(program, f=str(staging / Path(name).with_suffix(".onnx")), dynamo=True)
+        if calibrate is not None:
+            monitor.save(staging / "monitor.pt", metadata={"dataset": str(calibrate)})
+        (staging / MANIFEST_FILE).write_text(json.dumps(manifest, indent=2))
+        written = sorted(path.name for path in staging.iterdir())
+        if not out.exists():
+            os.replace(staging, out)  # the whole folder appears at once
+        else:
+            for name in written:
+                os.replace(staging / name, out / name)
+            staging.rmdir()
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return {name: out / name for name in written}
