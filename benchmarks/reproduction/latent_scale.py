@@ -10,13 +10,16 @@ arms at the shared budget (3k TS-IDM, 5k policy steps, ten evaluations of ten ep
   ``alpha1`` on the Intel Xeon, ``alpha1_epyc`` on halfcheetah);
 - ``standardized`` / ``relative``: beta = 1, ``tsidm.latent_scale`` set, the guide's T-symmetry term
   divided by the data's mean squared latent step (``guide.tsym_relative=true``), alpha = 1 and re-encoding;
+- ``standardized, guide ℓ_Tsym ×50``: the same with ``guide.tsym_weight=50``, which makes the guide's
+  T-symmetry term a sizeable share of its state term on the hopper sets;
 - ``BC``: the baseline grid's BC on the same file and budget.
 
 Columns: each seed's final score (mean of the ten evaluations), the mean, the mean of the second half of
 the evaluations, the change from BC and from the preset (means over the seeds both arms have), and,
 where the runs recorded them, the trained TS-IDM's latent RMS spread and RMS step on the data, the
-guide's T-symmetry term over its state term at the end of training, and how many evaluations
-were flagged frozen.
+guide's T-symmetry term over its state term at the end of training, the RMS latent step the guide
+proposes in the evaluation rollouts over the data's RMS latent step (1: steps of the data's size; far
+above 1: proposals off the data), and how many evaluations were flagged frozen.
 """
 from __future__ import annotations
 
@@ -32,10 +35,12 @@ ARMS = (
     ("preset", ("alpha1", "alpha1_epyc")),
     ("standardized", ("scale_standardized",)),
     ("relative", ("scale_relative",)),
+    ("standardized, guide ℓ_Tsym ×50", ("scale_standardized_tsym50",)),
     ("BC", ("grid:bc",)),
 )
 HELD_OUT = ("halfcheetah-v5-sac-medium-10k",
-            (("preset", ("heldout_preset",)), ("standardized", ("heldout_standardized",)), ("BC", ("heldout_bc",))))
+            (("preset", ("heldout_preset",)), ("standardized", ("heldout_standardized",)),
+             ("standardized, guide ℓ_Tsym ×50", ("heldout_standardized_tsym50",)), ("BC", ("heldout_bc",))))
 
 
 def _runs(sources: tuple[str, ...], task: str) -> dict[int, dict]:
@@ -53,6 +58,12 @@ def _runs(sources: tuple[str, ...], task: str) -> dict[int, dict]:
 def _final_ratio(result: dict) -> float | None:
     history = result.get("diagnostics", {}).get("guide_history", {}).get("guide/tsym_to_state_ratio")
     return statistics.mean(v for _, v in history[-5:]) if history else None
+
+
+def _rollout_step(result: dict) -> float | None:
+    data_step = result.get("diagnostics", {}).get("latent_step_rms")
+    steps = [e["guide_step_rms"] for e in result["evaluations"] if "guide_step_rms" in e]
+    return statistics.mean(steps) / data_step if steps and data_step else None
 
 
 def _mean(values) -> str:
@@ -80,8 +91,8 @@ def task_table(task: str, arms=ARMS) -> list[str]:
     bc, preset = found.get("BC", {}), found.get("preset", {})
     lines = [f"**{task}**", "",
              "| arm | seeds | final score per seed | mean | second-half mean | vs BC | vs preset | latent_rms | "
-             "latent_step_rms | guide ℓ_Tsym / state term | frozen evaluations |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "latent_step_rms | guide ℓ_Tsym / state term | rollout step / data step | frozen evaluations |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, runs in found.items():
         if not runs:
             continue
@@ -96,7 +107,7 @@ def task_table(task: str, arms=ARMS) -> list[str]:
             f"**{statistics.mean(scores):.1f}** | {_mean(halves)} | "
             f"{'—' if label == 'BC' else _change(runs, bc)} | {'—' if label == 'preset' else _change(runs, preset)} | "
             f"{_mean(d.get('latent_rms') for d in diagnostics)} | {_mean(d.get('latent_step_rms') for d in diagnostics)} | "
-            f"{_mean(_final_ratio(runs[s]) for s in seeds)} | "
+            f"{_mean(_final_ratio(runs[s]) for s in seeds)} | {_mean(_rollout_step(runs[s]) for s in seeds)} | "
             f"{_frozen_cell(runs, seeds, frozen, has_frozen)} |")
     return lines + [""]
 
