@@ -121,7 +121,7 @@ class LatentActionHead(_FrozenTSIDMPart):
 
     No training is needed: both networks come from the trained TS-IDM.
 
-    Two readings the paper leaves open (issue 8, choices 6 and 7), off by default:
+    Two readings the paper leaves open, off by default (README, "Deviations from the paper"):
     ``reencode_proposal`` feeds :math:`\phi_s(\psi_s(z_{s'}^*))` to
     :math:`h_{inv}` instead of the guide's output itself, and
     ``inverse_dropout`` keeps :math:`h_{inv}`'s training dropout on when acting.
