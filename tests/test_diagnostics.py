@@ -6,7 +6,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from torchrl_tels.data import load_dataset
-from torchrl_tels.diagnostics import is_frozen, latent_statistics, rollout_statistics
+from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
 from torchrl_tels.envs import make_eval_env, rollout_episodes
 from torchrl_tels.modules import LATENT_KEY, GUIDE_KEY, make_tels_actor, TSIDM
 
@@ -57,6 +57,12 @@ def test_freeze_diagnostic_fires_on_a_frozen_actor():
     torch.testing.assert_close(torch.tensor(moving["guide_step_rms"]), torch.tensor(stats["latent_step_rms"]),
                                rtol=1e-4, atol=0)
     assert not is_frozen(moving["guide_step_rms"], moving["action_std"], stats["latent_step_rms"], data_action_std)
+    assert not is_off_data(moving["guide_step_rms"], stats["latent_step_rms"])
+
+    # Proposals ten times the data's step size: the opposite failure, flagged as off the data.
+    runaway = behaviour(tsidm, 10 * offset, env)
+    assert is_off_data(runaway["guide_step_rms"], stats["latent_step_rms"])
+    assert not is_frozen(runaway["guide_step_rms"], runaway["action_std"], stats["latent_step_rms"], data_action_std)
 
 
 def test_latent_statistics_match_a_direct_computation():

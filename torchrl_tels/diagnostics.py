@@ -13,8 +13,10 @@ from tensordict import TensorDictBase
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 from torchrl_tels.modules.tsidm import TSIDM
 
-__all__ = ["latent_statistics", "rollout_statistics", "is_frozen", "FREEZE_RATIO"]
+__all__ = ["latent_statistics", "rollout_statistics", "is_frozen", "is_off_data", "FREEZE_RATIO", "OFF_DATA_RATIO"]
 
+#: A rollout's proposals are "off the data" when their RMS latent step exceeds the data's this many times.
+OFF_DATA_RATIO = 4.0
 #: A rollout is "frozen" when both its proposed latent step and its action spread
 #: fall below this fraction of the data's.
 FREEZE_RATIO = 0.25
@@ -54,3 +56,9 @@ def is_frozen(
     """True when the policy proposes much smaller latent steps than the data takes and its
     actions barely vary: the guide → h_inv chain sits at a fixed point."""
     return guide_step_rms < ratio * data_step_rms and action_std < ratio * data_action_std
+
+
+def is_off_data(guide_step_rms: float, data_step_rms: float, ratio: float = OFF_DATA_RATIO) -> bool:
+    """True when the guide proposes latent steps far larger than any the data takes: the opposite
+    failure to a freeze, where Eq. (11) asks h_inv for transitions it never saw."""
+    return guide_step_rms > ratio * data_step_rms

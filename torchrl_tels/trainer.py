@@ -32,7 +32,7 @@ from torchrl.objectives import SoftUpdate
 from torchrl_tels.config import check_same_run, training_config
 from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
-from torchrl_tels.diagnostics import is_frozen, latent_statistics, rollout_statistics
+from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
 from torchrl_tels.envs import (get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform,
                                TSymConsistencyMonitor)
 from torchrl_tels.errors import DatasetError, MonitorError, TaskError
@@ -432,7 +432,8 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     """``eval.episodes`` deterministic episodes (seeded by run seed and step) and their diagnostics.
 
     Besides the returns and scores, records the guide's proposed latent step and the spread of
-    the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`). With a
+    the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`) or one whose
+    proposals leave the data's step scale (:func:`~torchrl_tels.diagnostics.is_off_data`). With a
     calibrated ``monitor``, ``"monitor"`` holds its score at every step of every episode and the
     fraction of flagged steps.
     """
@@ -451,7 +452,8 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     result = {"step": step, "returns": returns, "lengths": lengths, "scores": scores,
               "score": sum(scores) / len(scores), "guide_step_rms": guide_step, "action_std": action_std,
               "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
-                                  latent_stats["data_action_std"])}
+                                  latent_stats["data_action_std"]),
+              "off_data": is_off_data(guide_step, latent_stats["latent_step_rms"])}
     if monitor is not None:
         result["monitor"] = _monitor_record(monitor, monitored)
     return result
