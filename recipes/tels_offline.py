@@ -82,7 +82,7 @@ def train(cfg: DictConfig) -> dict:
     stage2.monitor.save(run_dir / "monitor.pt")  # calibrated on the training data; recipes/export_policy.py reads it
     start = 0
     if run.resumes("policy"):
-        run.restore(run_dir / "state.pt", **stage2.modules())
+        run.restore(**stage2.modules())
         start = run.step
 
     with run.time("policy_s") as clock:

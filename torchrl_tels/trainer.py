@@ -35,6 +35,7 @@ from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
 from torchrl_tels.envs import (get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform,
                                TSymConsistencyMonitor)
+from torchrl_tels.envs.evaluation import eval_env_spaces
 from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
@@ -98,12 +99,7 @@ def _check_fits_env(data: TensorDictBase, task: Task, name: str) -> None:
     import gymnasium as gym
     import numpy as np
 
-    try:
-        env = gym.make(task.env_id)
-    except Exception as err:
-        raise TaskError(f"cannot create the evaluation env {task.env_id!r}: {type(err).__name__}: {err}") from None
-    obs_space, act_space = env.observation_space, env.action_space
-    env.close()
+    obs_space, act_space = eval_env_spaces(task.env_id)
     obs_dim = int(gym.spaces.flatdim(obs_space))
     obs_size, act_size = data["observation"].shape[-1], data["action"].shape[-1]
     if obs_dim != obs_size or act_space.shape[-1] != act_size:
@@ -166,6 +162,7 @@ class RunState:
     policy_history: dict = field(default_factory=dict)
     evaluations: list = field(default_factory=list)
     modules: dict = field(default_factory=dict)
+    rng: dict | None = None
 
     @classmethod
     def start(cls, cfg, path: Path) -> "RunState":
@@ -179,22 +176,21 @@ class RunState:
         return cls(**{k: v for k, v in saved.items() if k in fields and k != "config"}, config=config)
 
     def save(self, path: Path, **modules: Any) -> None:
-        """Writes this state, ``modules`` (state dicts) and the RNG streams atomically."""
+        """Writes this state, ``modules`` (state dicts) and, with them, the RNG streams atomically."""
         self.modules = modules
-        state = dataclasses.asdict(self)
-        if modules:
-            state["rng"] = get_rng_state()
-        training.save_training_state(path, state)
+        self.rng = get_rng_state() if modules else None
+        # A shallow record: torch.save writes the tensors as they are, no copy needed.
+        training.save_training_state(path, {f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
 
     def resumes(self, stage: str, candidate: int = 0) -> bool:
         """Whether this state holds a checkpoint inside ``stage`` (and β candidate) to continue."""
         return self.stage == stage and self.candidate == candidate and self.step > 0 and bool(self.modules)
 
-    def restore(self, path: Path, **modules: Any) -> None:
+    def restore(self, **modules: Any) -> None:
         """Loads the saved module states into ``modules`` and the RNG streams (after :meth:`resumes`)."""
         for name, module in modules.items():
             module.load_state_dict(self.modules[name])
-        set_rng_state(training.load_training_state(path)["rng"])
+        set_rng_state(self.rng)
 
     def time(self, key: str):
         """A context that adds the wall-clock time it spans to ``wall[key]``."""
@@ -257,7 +253,7 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     total = tsidm_steps(cfg, len(data))
     start, tail, history = 0, [], {key: [] for key in TSIDM_TERMS}
     if run.resumes("tsidm", run.candidate):
-        run.restore(run_dir / "state.pt", loss=loss_module, optim=optim)
+        run.restore(loss=loss_module, optim=optim)
         start, history, tail = run.step, run.tsidm_history, run.modules["tail"]
 
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
@@ -354,7 +350,7 @@ class Stage2:
     guide: Any
     actor_options: dict
     latent_stats: dict
-    monitor: TSymConsistencyMonitor | None = None
+    monitor: TSymConsistencyMonitor
 
     def update(self, cfg, batch: TensorDictBase, step: int):
         """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V."""

@@ -14,12 +14,30 @@ from torchrl_tels.errors import TaskError
 __all__ = ["make_eval_env", "evaluate_policy", "rollout_episodes"]
 
 
+def _cannot_create(env_id: str, err: Exception) -> TaskError:
+    return TaskError(f"cannot create the evaluation env {env_id!r}: {type(err).__name__}: {err}")
+
+
 def make_eval_env(env_id: str, **kwargs) -> GymEnv:
     """A TorchRL ``GymEnv`` for ``env_id`` (e.g. ``"Hopper-v4"``), with a clear error for unknown ids."""
     try:
         return GymEnv(env_id, **kwargs)
     except Exception as err:
-        raise TaskError(f"cannot create the evaluation env {env_id!r}: {type(err).__name__}: {err}") from None
+        raise _cannot_create(env_id, err) from None
+
+
+def eval_env_spaces(env_id: str):
+    """``(observation_space, action_space)`` of the Gymnasium env ``env_id``, checked without building a
+    TorchRL env; the same clear error as :func:`make_eval_env` for an id that cannot be built."""
+    import gymnasium as gym
+
+    try:
+        env = gym.make(env_id)
+    except Exception as err:
+        raise _cannot_create(env_id, err) from None
+    spaces = env.observation_space, env.action_space
+    env.close()
+    return spaces
 
 
 @torch.no_grad()
