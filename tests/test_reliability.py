@@ -282,6 +282,8 @@ HYPERPARAMETER_CASES = [
     ("dataset.delete_ratio=1.5", "dataset.delete_ratio must lie in [0, 1], got 1.5."),
     ("dataset.delete_xy=[0]", "dataset.delete_xy must be two observation column indices >= 0"),
     ("guide.reencode_proposal=3", "guide.reencode_proposal must be true or false, got 3."),
+    ("+tsidm.term_weights.rec=1", "tsidm.term_weights must be null or a mapping with keys among dyn, ode, tsym"),
+    ("+tsidm.term_weights.dyn=-1", "tsidm.term_weights.dyn must be >= 0, got -1."),
     ("tsidm.beta_selection=lowest", "tsidm.beta_selection must be one of ('unweighted', 'weighted'), got 'lowest'."),
 ]
 

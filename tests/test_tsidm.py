@@ -102,6 +102,22 @@ def test_loss_terms_match_explicit_jacobians(beta):
     torch.testing.assert_close(out["ell_sum"], unweighted, rtol=0, atol=1e-8)
 
 
+def test_term_weights_scale_each_regularizer_inside_beta():
+    tsidm = small_tsidm()
+    td = batch()
+    weights = {"dyn": 0.1, "tsym": 0.25}  # TSRL-like; ode keeps weight 1
+    out = TSIDMLoss(tsidm, beta=0.5, term_weights=weights)(td)
+    with torch.no_grad():
+        ref = reference_terms(tsidm, td)
+    expected = {"dyn": 0.5 * 0.1 * ref["dyn"], "ode": 0.5 * ref["ode"], "tsym": 0.5 * 0.25 * ref["tsym"]}
+    for name, value in expected.items():
+        torch.testing.assert_close(out[f"loss_{name}"], value, rtol=0, atol=1e-8)
+        torch.testing.assert_close(out[f"ell_{name}"], ref[name], rtol=0, atol=1e-8)
+    total = sum(v for k, v in out.items() if k.startswith("loss_"))
+    torch.testing.assert_close(total, ref["rec"] + sum(expected.values()), rtol=0, atol=1e-8)
+    torch.testing.assert_close(out["ell_total"], total.detach(), rtol=0, atol=1e-8)
+
+
 def test_jvp_terms_are_differentiable_like_explicit_jacobians():
     """Gradients of ℓ_dyn + ℓ_ode through the JVPs equal those through explicit Jacobians."""
     tsidm = small_tsidm()
@@ -255,6 +271,8 @@ def test_bad_batches_raise_clear_errors(mutate, error, pattern):
         ({"beta": float("nan")}, "beta must be a finite number >= 0"),
         ({"ablation": "nope"}, "unknown ablation 'nope'"),
         ({"dim_reduction": "max"}, "dim_reduction"),
+        ({"term_weights": {"rec": 1.0}}, r"unknown term_weights \['rec'\]"),
+        ({"term_weights": {"dyn": -0.1}}, r"term_weights\['dyn'\] must be finite and >= 0"),
     ],
 )
 def test_bad_hyperparameters_raise(kwargs, pattern):

@@ -33,6 +33,7 @@ RESUMABLE_KEYS = ("run_dir", "resume", "threads", "logger", "checkpoint")
 #: option has no effect, so runs made before an option existed still resume.
 ADDED_OPTIONS = {
     ("tsidm", "beta_selection"): ("weighted", lambda cfg: cfg.get("tsidm", {}).get("beta") == "auto"),
+    ("tsidm", "term_weights"): (None, lambda cfg: True),
 }
 
 
@@ -67,6 +68,18 @@ def _check_deletion(cfg) -> None:
         raise ConfigError(f"dataset.delete_xy must be two observation column indices >= 0, got {xy!r}.")
 
 
+def _check_term_weights(cfg) -> None:
+    weights = cfg.tsidm.term_weights
+    if weights is None:
+        return
+    if not hasattr(weights, "items") or not set(weights) <= {"dyn", "ode", "tsym"}:
+        raise ConfigError(f"tsidm.term_weights must be null or a mapping with keys among dyn, ode, tsym, "
+                          f"got {weights!r}.")
+    for name in weights:
+        if _number(cfg, f"tsidm.term_weights.{name}") < 0:
+            raise ConfigError(f"tsidm.term_weights.{name} must be >= 0, got {weights[name]!r}.")
+
+
 def validate_config(cfg) -> None:
     """Raises :class:`ConfigError` naming the first bad entry of a recipe config."""
     beta = cfg.tsidm.beta
@@ -93,6 +106,7 @@ def validate_config(cfg) -> None:
     for path in ("dataset.reward_scale", "dataset.reward_bias"):
         _number(cfg, path)
     _check_deletion(cfg)
+    _check_term_weights(cfg)
     for path in ("guide.tsym_regularizer", "guide.tsym_relative", "guide.reencode_proposal", "guide.act_with_dropout"):
         if not isinstance(OmegaConf.select(cfg, path), bool):
             raise ConfigError(f"{path} must be true or false, got {OmegaConf.select(cfg, path)!r}.")

@@ -236,8 +236,9 @@ def make_tsidm(cfg, data: TensorDictBase) -> TSIDM:
 def make_tsidm_loss(cfg, tsidm: TSIDM, beta: float) -> TSIDMLoss:
     """Eq. (7) with the config's β, Table 3 ablation, norm reduction and latent-scale option."""
     t = cfg.tsidm
+    term_weights = OmegaConf.to_container(t.term_weights) if t.term_weights is not None else None
     return TSIDMLoss(tsidm, beta=beta, ablation=t.ablation, dim_reduction=t.dim_reduction,
-                     relative=t.latent_scale == "relative", check_inputs=False)
+                     term_weights=term_weights, relative=t.latent_scale == "relative", check_inputs=False)
 
 
 def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None):

@@ -40,6 +40,11 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         \ell_{T\text{-}sym} &= \|h_{fwd}(z_s, z_a) + h_{rvs}(z_s + h_{fwd}(z_s, z_a), z_a)\|^2 && (6)\\
         \mathcal{L} &= \ell_{rec} + \beta(\ell_{dyn} + \ell_{ode} + \ell_{T\text{-}sym}) && (7)
 
+    ``term_weights`` generalizes Eq. (7) to
+    :math:`\ell_{rec} + \beta(w_{dyn}\ell_{dyn} + w_{ode}\ell_{ode} + w_{T\text{-}sym}\ell_{T\text{-}sym})`;
+    the paper's weights are all 1. TSRL's code (Cheng et al., 2023), which TS-IDM
+    descends from, weighs the dynamics and consistency terms 0.1 and the decoder-ODE term 1.
+
     **Latent scale.** Eq. (7) has an exact symmetry: for any :math:`c > 0`,
     :math:`\phi_s \to c\phi_s`, :math:`\psi_s(z) \to \psi_s(z/c)`,
     :math:`h_{inv}(z, z') \to h_{inv}(z/c, z'/c)` and
@@ -65,8 +70,8 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
 
     The output holds ``loss_state_rec``, ``loss_action_rec`` (:math:`\ell_{rec}`
     has weight 1, Table 10) and ``loss_dyn``, ``loss_ode``, ``loss_tsym``
-    already multiplied by the one shared :math:`\beta` (Appendix B.5), so that
-    the sum of the ``loss_*`` entries is exactly Eq. (7). Unweighted, detached
+    already multiplied by the one shared :math:`\beta` (Appendix B.5) and their
+    term weight, so that the sum of the ``loss_*`` entries is exactly Eq. (7). Unweighted, detached
     copies ride along as ``ell_rec``, ``ell_dyn``, ``ell_ode``, ``ell_tsym``,
     ``ell_total`` (= Eq. 7) and ``ell_sum`` (the terms summed without β).
     Appendix B.5 picks β as the one "with the lowest TS-IDM training loss";
@@ -81,6 +86,8 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
             ``"dyn"`` (+ h_fwd, h_rvs: + ℓ_dyn), ``"ode"`` (+ ℓ_ode) or ``"full"`` (+ ℓ_T-sym).
         dim_reduction: how :math:`\|\cdot\|^2` reduces over vector entries,
             ``"sum"`` (as written, default) or ``"mean"``.
+        term_weights: per-term weights :math:`w` inside β's bracket, a mapping with any of
+            ``"dyn"``, ``"ode"``, ``"tsym"`` (missing ones are 1). Default: all 1 (Eq. 7).
         relative: divide :math:`\ell_{dyn}` and :math:`\ell_{T\text{-}sym}` by the
             batch's mean latent step :math:`\bar d` (see "Latent scale"). Default ``False``.
         check_inputs: validate keys, shapes and finiteness of every batch.
@@ -130,6 +137,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         beta: float = 1.0,
         ablation: str = "full",
         dim_reduction: str = "sum",
+        term_weights: dict[str, float] | None = None,
         relative: bool = False,
         check_inputs: bool = True,
     ) -> None:
@@ -148,6 +156,14 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
             raise ValueError(
                 f"TSIDMLoss: dim_reduction must be 'sum' or 'mean', got {dim_reduction!r}."
             )
+        term_weights = dict(term_weights or {})
+        unknown = set(term_weights) - {"dyn", "ode", "tsym"}
+        if unknown:
+            raise ValueError(f"TSIDMLoss: unknown term_weights {sorted(unknown)}; use 'dyn', 'ode', 'tsym'.")
+        for name, weight in term_weights.items():
+            if not math.isfinite(float(weight)) or float(weight) < 0:
+                raise ValueError(f"TSIDMLoss: term_weights[{name!r}] must be finite and >= 0, got {weight}.")
+        self.term_weights = {name: float(term_weights.get(name, 1.0)) for name in ("dyn", "ode", "tsym")}
         self.beta = beta
         self.ablation = ablation
         self.dim_reduction = dim_reduction
@@ -261,9 +277,10 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
             value = self._reduce(per_sample)
             if self.relative and name in ("dyn", "tsym"):
                 value = value / latent_step.clamp_min(LATENT_STD_EPS**2)
-            out[f"loss_{name}"] = self.beta * value
+            weight = self.beta * self.term_weights[name]
+            out[f"loss_{name}"] = weight * value
             ells[f"ell_{name}"] = value.detach()
-            ell_total = ell_total + self.beta * value.detach()
+            ell_total = ell_total + weight * value.detach()
             ell_sum = ell_sum + value.detach()
         # Eq. (7)
         ells["ell_total"] = ell_total
