@@ -62,7 +62,7 @@ from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
 
 from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
-from torchrl_tels.envs import evaluate_policy, get_task, make_eval_env, normalized_score, TSIDMEncoderTransform
+from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normalized_score, TSIDMEncoderTransform
 from torchrl_tels.training import check_finite
 
 __all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "train_baseline"]
@@ -242,6 +242,7 @@ def train_baseline(
     eval_episodes: int = 10,
     eval_last_n: int = 10,
     eval_max_steps: int = 1000,
+    eval_batched: bool = True,
     threads: int | None = None,
     tsidm_path: str | Path | None = None,
     hyperparameters: Mapping[str, Any] | None = None,
@@ -265,6 +266,9 @@ def train_baseline(
         batch_size: transitions per step (256, as the recipe).
         eval_interval, eval_episodes, eval_last_n, eval_max_steps: the
             evaluation protocol, as the recipe's ``eval.*``.
+        eval_batched: run each evaluation's episodes as one batch of envs, as the recipe's
+            ``eval.batched`` (the same episodes up to float rounding; see
+            :func:`~torchrl_tels.envs.rollout_episodes`).
         threads: torch intra-op threads; ``None`` keeps torch's setting.
         tsidm_path: the TS-IDM file (``tsidm.pt`` of a TELS run) for ``iql_latent``.
         hyperparameters: overrides of :data:`HYPERPARAMETERS` ``[method]``.
@@ -302,8 +306,6 @@ def train_baseline(
     if hp.get("reward_bias"):
         data = data.clone()
         data["next", "reward"] = data["next", "reward"] + hp["reward_bias"]
-    env = make_eval_env(task.env_id)
-    action_spec = env.action_spec_unbatched
     obs_dim = data["observation"].shape[-1]
     extra: dict[str, Any] = {}
 
@@ -315,7 +317,7 @@ def train_baseline(
         obs_key, net_in_dim = "latent", encoder.latent_state_dim
         # Write time: the dataset is encoded once; the env encodes each observation with a clone.
         write_transforms = [encoder]
-        env = TransformedEnv(env, encoder.clone())
+        wrap = lambda env: TransformedEnv(env, encoder.clone())
         extra["tsidm"] = {"path": str(tsidm_path), "sha256": file_sha256(tsidm_path),
                           "latent_state_dim": encoder.latent_state_dim}
     elif hp["normalize_observations"]:
@@ -324,12 +326,14 @@ def train_baseline(
         obs_key, net_in_dim = "observation", obs_dim
         write_transforms = [ObservationNorm(loc=loc, scale=scale, in_keys=["observation", ("next", "observation")],
                                             standard_normal=True)]
-        env = TransformedEnv(env, Compose(DoubleToFloat(), ObservationNorm(
+        wrap = lambda env: TransformedEnv(env, Compose(DoubleToFloat(), ObservationNorm(
             loc=loc.clone(), scale=scale.clone(), in_keys=["observation"], standard_normal=True)))
     else:
         obs_key, net_in_dim = "observation", obs_dim
         write_transforms = []
-        env = TransformedEnv(env, DoubleToFloat())
+        wrap = lambda env: TransformedEnv(env, DoubleToFloat())
+    envs = make_eval_envs(task.env_id, eval_episodes if eval_batched else 1, wrap=wrap)
+    action_spec = envs[0].action_spec_unbatched
 
     buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed)
     actor, update = _BUILDERS[method](obs_key, net_in_dim, action_spec, hp)
@@ -343,7 +347,7 @@ def train_baseline(
         if (step + 1) % eval_interval == 0 or step + 1 == steps:
             eval_start = time.perf_counter()
             actor.eval()
-            returns = evaluate_policy(actor, env, eval_episodes, max_steps=eval_max_steps,
+            returns = evaluate_policy(actor, envs, eval_episodes, max_steps=eval_max_steps,
                                       seed=seed * 100_000 + (step + 1))
             actor.train()
             scores = [normalized_score(task, r) for r in returns]
@@ -382,4 +386,4 @@ def train_baseline(
         "hyperparameters": hp,
         **extra,
     }
-    return (results, actor, env) if return_policy else results
+    return (results, actor, envs[0]) if return_policy else results

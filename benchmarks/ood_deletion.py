@@ -161,7 +161,8 @@ def train_tels(setup: Setup, boxes, ratio: float, seed: int, args):
 def train_iql(setup: Setup, data, seed: int, args):
     results, actor, env = train_baseline(
         "iql", data, task=setup.task, steps=args.steps, seed=seed, eval_interval=args.steps, eval_episodes=1,
-        eval_last_n=1, threads=args.threads, hyperparameters=MAZE_HYPERPARAMETERS["iql"], return_policy=True,
+        eval_last_n=1, eval_batched=False, threads=args.threads, hyperparameters=MAZE_HYPERPARAMETERS["iql"],
+        return_policy=True,
     )
     return actor, env, {"wall_time_s": results["wall_time_s"], "steps_per_s": results["steps_per_s"],
                         "hyperparameters": results["hyperparameters"]}

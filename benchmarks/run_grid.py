@@ -112,6 +112,8 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
            f"--work-dir={args.work_dir}"]
     if args.tsidm_steps is not None:
         cmd.append(f"--tsidm-steps={args.tsidm_steps}")
+    if args.eval_batched:
+        cmd.append("--eval-batched")
     if args.threads:
         cmd.append(f"--threads={args.threads}")
     return cmd
@@ -133,7 +135,7 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
         shutil.rmtree(run_dir)
     overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode) + [
         f"policy.steps={args.steps}", f"policy.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
-        f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}",
+        f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}", f"eval.batched={args.eval_batched}",
     ]
     if method in ABLATIONS:
         overrides += [f"tsidm.ablation={ABLATIONS[method]}", f"logger.exp_name={method}_{task}_seed{seed}"]
@@ -169,7 +171,7 @@ def resolve_tsidm(task: str, seed: int, args) -> tuple[Path, str]:
 
 def budget_of(args, method: str) -> dict:
     budget = {"policy_steps": args.steps, "batch_size": BATCH_SIZE, "eval_interval": args.eval_interval,
-              "eval_episodes": args.eval_episodes, "eval_last_n": EVAL_LAST_N,
+              "eval_episodes": args.eval_episodes, "eval_last_n": EVAL_LAST_N, "eval_batched": args.eval_batched,
               "paper_policy_steps": PAPER_POLICY_STEPS}
     if method in ("tels", "iql_latent", *ABLATIONS):
         budget["tsidm_steps"] = args.tsidm_steps  # None: the recipe's default, Table 10's 1000 epochs
@@ -201,7 +203,8 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
                                config={"method": method, "task": task, "seed": seed, **budget_of(args, method)})
         results = train_baseline(
             method, task, steps=args.steps, seed=seed, batch_size=BATCH_SIZE, eval_interval=args.eval_interval,
-            eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, threads=args.threads,
+            eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, eval_batched=args.eval_batched,
+            threads=args.threads,
             tsidm_path=tsidm_path, log_fn=logger.log_scalars if logger else None,
             hyperparameters=MAZE_HYPERPARAMETERS.get(method) if is_maze(task) else None,
         )
@@ -484,6 +487,9 @@ def parse_args(argv=None):
                         help="TS-IDM steps for tels/iql_latent (default: the recipe's 1000 epochs, Table 10)")
     parser.add_argument("--eval-interval", "--eval_interval", type=int, default=5000)
     parser.add_argument("--eval-episodes", "--eval_episodes", type=int, default=10)
+    parser.add_argument("--eval-batched", "--eval_batched", action="store_true",
+                        help="run each evaluation's episodes as one batch of envs (the grid's results ran "
+                             "them one at a time, which this keeps by default)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch intra-op threads (and OMP_NUM_THREADS of the recipe); default: torch's")
     parser.add_argument("--results-dir", "--results_dir", type=Path, default=DEFAULT_RESULTS)

@@ -178,3 +178,48 @@ def test_rollout_episodes_are_the_evaluated_episodes():
     again = next(rollout_episodes(policy, env, 1, seed=8, max_steps=50))
     torch.testing.assert_close(again["observation"], rollouts[1]["observation"])
     assert not torch.equal(rollouts[0]["observation"][0], rollouts[1]["observation"][0])
+
+
+def test_batched_rollouts_are_the_sequential_episodes():
+    """A batch of envs runs episode i with seed + i, as one env does: with a policy whose rows do not
+    interact (no matrix product to round differently), every episode is bitwise the same, including
+    where each one ends and its last next-observation."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import DoubleToFloat, TransformedEnv
+
+    from torchrl_tels.envs import make_eval_env, make_eval_envs, rollout_episodes
+
+    # Hopper ends its episodes at different steps; 5 episodes on 3 copies leave a partial last batch.
+    policy = TensorDictModule(lambda obs: (0.5 * obs[..., 2:5]).clamp(-1, 1), in_keys=["observation"],
+                              out_keys=["action"])
+    one = TransformedEnv(make_eval_env("Hopper-v4"), DoubleToFloat())
+    batch = make_eval_envs("Hopper-v4", 3, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
+    sequential = list(rollout_episodes(policy, one, 5, seed=11, max_steps=300))
+    batched = list(rollout_episodes(policy, batch, 5, seed=11, max_steps=300))
+    assert len(batched) == 5
+    lengths = [r.shape[-1] for r in sequential]
+    assert len(set(lengths)) > 1 and max(lengths) < 300  # the episodes end, and not together
+    assert [r.shape[-1] for r in batched] == lengths
+    for seq, bat in zip(sequential, batched):
+        for key in ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done")):
+            assert torch.equal(seq[key], bat[key]), key
+
+
+def test_batched_evaluation_matches_sequential_with_a_network_policy():
+    """With an MLP, the batched product rounds differently; over a short horizon the returns agree
+    within float tolerance."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import DoubleToFloat, TransformedEnv
+    from torchrl.modules import MLP
+
+    from torchrl_tels.envs import evaluate_policy, make_eval_env, make_eval_envs
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(MLP(in_features=3, out_features=1, num_cells=[64, 64]), torch.nn.Tanh())
+    policy = TensorDictModule(lambda obs: 2 * net(obs), in_keys=["observation"], out_keys=["action"])
+    one = TransformedEnv(make_eval_env("Pendulum-v1"), DoubleToFloat())
+    batch = make_eval_envs("Pendulum-v1", 4, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
+    sequential = evaluate_policy(policy, one, 4, seed=3, max_steps=60)
+    batched = evaluate_policy(policy, batch, 4, seed=3, max_steps=60)
+    assert len(set(sequential)) == 4
+    np.testing.assert_allclose(batched, sequential, rtol=1e-4)

@@ -34,6 +34,7 @@ RESUMABLE_KEYS = ("run_dir", "resume", "threads", "logger", "checkpoint")
 ADDED_OPTIONS = {
     ("tsidm", "beta_selection"): ("weighted", lambda cfg: cfg.get("tsidm", {}).get("beta") == "auto"),
     ("tsidm", "term_weights"): (None, lambda cfg: True),
+    ("eval", "batched"): (False, lambda cfg: True),
 }
 
 
@@ -107,7 +108,7 @@ def validate_config(cfg) -> None:
         _number(cfg, path)
     _check_deletion(cfg)
     _check_term_weights(cfg)
-    for path in ("guide.tsym_regularizer", "guide.tsym_relative", "guide.reencode_proposal", "guide.act_with_dropout"):
+    for path in ("eval.batched", "guide.tsym_regularizer", "guide.tsym_relative", "guide.reencode_proposal", "guide.act_with_dropout"):
         if not isinstance(OmegaConf.select(cfg, path), bool):
             raise ConfigError(f"{path} must be true or false, got {OmegaConf.select(cfg, path)!r}.")
     if beta == "auto" and len(cfg.tsidm.beta_candidates) == 0:

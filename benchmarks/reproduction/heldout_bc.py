@@ -32,7 +32,7 @@ def main():
     data = subset_dataset(load_dataset(str(source)), 10_000, seed=args.seed, mode="trajectories")
     start = time.time()
     result = train_baseline("bc", data, task="mujoco/halfcheetah/medium-v0", steps=5000, seed=args.seed,
-                            eval_interval=500, eval_episodes=10, threads=1, progress=False)
+                            eval_interval=500, eval_episodes=10, eval_batched=False, threads=1, progress=False)
     result.update(variant="heldout_bc", date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start,
                   machine=machine_description(), command=f"python -m {__spec__.name} --seed {args.seed}")
     write_result(out, result, force=True)

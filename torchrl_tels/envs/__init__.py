@@ -12,7 +12,7 @@ from torchrl_tels.envs.tasks import (
     Task,
 )
 from torchrl_tels.envs import antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
-from torchrl_tels.envs.evaluation import evaluate_policy, make_eval_env, rollout_episodes
+from torchrl_tels.envs.evaluation import evaluate_policy, make_eval_env, make_eval_envs, rollout_episodes
 from torchrl_tels.envs.monitor import TSymConsistencyMonitor
 from torchrl_tels.envs.transforms import TSIDMEncoderTransform
 
@@ -25,6 +25,7 @@ __all__ = [
     "get_task",
     "list_tasks",
     "make_eval_env",
+    "make_eval_envs",
     "normalized_score",
     "register_task",
     "rollout_episodes",

@@ -1,17 +1,17 @@
 """Deterministic policy evaluation in a gymnasium env through TorchRL (paper §4 protocol)."""
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, GymEnv
-from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from torchrl_tels.errors import TaskError
 
-__all__ = ["make_eval_env", "evaluate_policy", "rollout_episodes"]
+__all__ = ["make_eval_env", "make_eval_envs", "evaluate_policy", "rollout_episodes"]
 
 
 def _cannot_create(env_id: str, err: Exception) -> TaskError:
@@ -24,6 +24,14 @@ def make_eval_env(env_id: str, **kwargs) -> GymEnv:
         return GymEnv(env_id, **kwargs)
     except Exception as err:
         raise _cannot_create(env_id, err) from None
+
+
+def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] | None = None) -> list[EnvBase]:
+    """``copies`` evaluation envs that :func:`rollout_episodes` steps together, each a
+    :func:`make_eval_env` passed through ``wrap`` (e.g. into a ``TransformedEnv``)."""
+    if copies < 1:
+        raise ValueError(f"make_eval_envs: copies must be >= 1, got {copies}.")
+    return [make_eval_env(env_id) if wrap is None else wrap(make_eval_env(env_id)) for _ in range(copies)]
 
 
 def eval_env_spaces(env_id: str):
@@ -43,7 +51,7 @@ def eval_env_spaces(env_id: str):
 @torch.no_grad()
 def rollout_episodes(
     policy: TensorDictModuleBase,
-    env: EnvBase,
+    env: EnvBase | Sequence[EnvBase],
     episodes: int,
     *,
     seed: int,
@@ -51,19 +59,58 @@ def rollout_episodes(
 ) -> Iterator[TensorDictBase]:
     """Yields the rollout TensorDict of each of ``episodes`` deterministic episodes.
 
-    Episode ``i`` resets the env with seed ``seed + i``, so a given
-    evaluation is reproducible whatever ran before it (a resumed run scores
-    the same as an uninterrupted one). Each rollout stops at the first done.
+    Episode ``i`` resets its env with seed ``seed + i``, so a given evaluation is
+    reproducible whatever ran before it (a resumed run scores the same as an
+    uninterrupted one). Each rollout stops at its first done.
+
+    ``env`` may be a list of ``k`` copies of one env (:func:`make_eval_envs`): the
+    episodes then run ``k`` at a time in lockstep, and one policy call per step covers
+    every episode still running, which is where evaluation spends its time. Episode ``i``
+    runs on copy ``i % k`` with the same seed, so the episodes are one env's, up to the
+    float rounding of a batched matrix product (which a chaotic body can amplify over a
+    long episode).
     """
+    envs = [env] if isinstance(env, EnvBase) else list(env)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        for episode in range(episodes):
-            env.set_seed(seed + episode)
-            yield env.rollout(max_steps, policy, break_when_any_done=True)
+        if len(envs) == 1:
+            for episode in range(episodes):
+                envs[0].set_seed(seed + episode)
+                yield envs[0].rollout(max_steps, policy, break_when_any_done=True)
+            return
+        for first in range(0, episodes, len(envs)):
+            group = envs[: min(len(envs), episodes - first)]
+            yield from _lockstep_rollouts(policy, group, seed + first, max_steps)
+
+
+def _lockstep_rollouts(policy, envs: list[EnvBase], seed: int, max_steps: int) -> list[TensorDictBase]:
+    """One episode per env, env ``j`` seeded ``seed + j``, each stepped as ``EnvBase.rollout``
+    steps one env: the policy writes into the current tensordict, the env steps it, and the
+    episode ends at its first done. Only the policy's inputs are stacked for its one call."""
+    for j, env in enumerate(envs):
+        env.set_seed(seed + j)
+    current = [env.reset() for env in envs]
+    steps: list[list[TensorDictBase]] = [[] for _ in envs]
+    running = list(range(len(envs)))
+    for _ in range(max_steps):
+        inputs = TensorDict({key: torch.stack([current[j].get(key) for j in running]) for key in policy.in_keys},
+                            batch_size=[len(running)])
+        outputs = policy(inputs).exclude(*policy.in_keys)
+        still_running = []
+        for row, j in enumerate(running):
+            stepped = envs[j].step(current[j].update(outputs[row]))
+            steps[j].append(stepped.copy())
+            if not stepped["next", "done"].any():
+                still_running.append(j)
+                current[j] = step_mdp(stepped, keep_other=True)
+        running = still_running
+        if not running:
+            break
+    return [torch.stack(episode) for episode in steps]
 
 
 def evaluate_policy(
     policy: TensorDictModuleBase,
-    env: EnvBase,
+    env: EnvBase | Sequence[EnvBase],
     episodes: int,
     *,
     seed: int,
