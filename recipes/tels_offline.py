@@ -18,19 +18,30 @@ it rebuilds the actor: ``torchrl_tels.modules.load_tels_actor``), ``monitor.pt``
 from __future__ import annotations
 
 import json
+import os
 import sys
 
-import hydra
-import torch
-import tqdm
-from omegaconf import DictConfig, OmegaConf
+# Idle OpenMP threads sleep instead of spinning, so a run sharing the machine with another
+# process does not collapse (BENCHMARKS.md, "CPU threads"). OpenMP reads this once, when
+# torch starts; a value the user set wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from torchrl_tels.config import check_folder_creatable, check_precision_supported, validate_config
-from torchrl_tels.envs import make_eval_envs
-from torchrl_tels.errors import TelsError
-from torchrl_tels.modules import save_guide_policy
-from torchrl_tels.record import RunLogger, write_results
-from torchrl_tels.trainer import (
+import hydra  # noqa: E402
+import torch  # noqa: E402
+import tqdm  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from torchrl_tels.config import (  # noqa: E402
+    check_folder_creatable,
+    check_precision_supported,
+    resolve_threads,
+    validate_config,
+)
+from torchrl_tels.envs import make_eval_envs  # noqa: E402
+from torchrl_tels.errors import TelsError  # noqa: E402
+from torchrl_tels.modules import save_guide_policy  # noqa: E402
+from torchrl_tels.record import RunLogger, write_results  # noqa: E402
+from torchrl_tels.trainer import (  # noqa: E402
     evaluate,
     load_pretrained_tsidm,
     make_data,
@@ -55,8 +66,7 @@ def train(cfg: DictConfig) -> dict:
     # Everything that can refuse the run is checked before run_dir is created.
     validate_config(cfg)
     check_precision_supported(cfg.precision)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    torch.set_num_threads(resolve_threads(cfg.threads))
     torch.manual_seed(cfg.seed)
     run_dir = check_folder_creatable(cfg.run_dir)
     run = RunState.start(cfg, run_dir / "state.pt")
@@ -92,6 +102,7 @@ def train(cfg: DictConfig) -> dict:
             # Lines 7-8: V by expectile regression, then the guide against the updated V.
             value_losses, guide_losses = stage2.update(cfg, stage2.buffer.sample(), step)
             if (step + 1) % cfg.logger.log_interval == 0:
+                stage2.check_finite()
                 scalars = {f"value/{k}": v.item() for k, v in value_losses.items()}
                 scalars.update({f"guide/{k}": v.item() for k, v in guide_losses.items()})
                 for key, value in scalars.items():
@@ -106,10 +117,12 @@ def train(cfg: DictConfig) -> dict:
                                     "eval/guide_step_rms": run.evaluations[-1]["guide_step_rms"]}, step + 1)
                 progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
+                stage2.check_finite()
                 clock.update()
                 run.step = step + 1
                 run.save(run_dir / "state.pt", **{k: m.state_dict() for k, m in stage2.modules().items()})
 
+    stage2.check_finite()
     save_guide_policy(run_dir / "policy.pt", stage2.guide, latent_dim=tsidm.latent_state_dim, mode=cfg.guide.mode,
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
                       metadata={"results": str(run_dir / "results.json")})

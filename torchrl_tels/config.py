@@ -20,12 +20,14 @@ __all__ = [
     "check_same_run",
     "check_writable_folder",
     "training_config",
+    "resolve_device",
+    "resolve_threads",
     "validate_config",
 ]
 
 #: Top-level config entries that may differ between a run and its ``resume=true``
 #: continuation: they decide where and how a run is logged, not what it computes.
-RESUMABLE_KEYS = ("run_dir", "resume", "threads", "logger", "checkpoint")
+RESUMABLE_KEYS = ("run_dir", "resume", "threads", "device", "logger", "checkpoint")
 
 #: Options added after checkpoints were first written, as (section, key): (the value that
 #: reproduces how a checkpoint without the option behaved, when the option matters at all).
@@ -81,8 +83,38 @@ def _check_term_weights(cfg) -> None:
             raise ConfigError(f"tsidm.term_weights.{name} must be >= 0, got {weights[name]!r}.")
 
 
+def resolve_threads(spec) -> int:
+    """torch's intra-op thread count for ``threads``: ``auto`` (or ``None``) is half the logical CPUs, at
+    least 1. Beside another busy process, torch's default of every core ran stage 1 2.8x slower than
+    one thread on 2 cores (BENCHMARKS.md, "CPU threads"); half leaves a neighbour its share."""
+    if spec is None or spec == "auto":
+        return max(1, (os.cpu_count() or 1) // 2)
+    return int(spec)
+
+
+def resolve_device(spec: str) -> "torch.device":
+    """The device ``spec`` names: ``auto`` (CUDA where available, else the CPU), ``cpu``, ``cuda`` or
+    ``cuda:N``; a :class:`ConfigError` for anything else, or for CUDA on a machine without it."""
+    import torch
+
+    spec = str(spec)
+    if spec == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if spec != "cpu" and not (spec == "cuda" or (spec.startswith("cuda:") and spec[5:].isdigit())):
+        raise ConfigError(f"device must be auto, cpu, cuda or cuda:N, got {spec!r}.")
+    device = torch.device(spec)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device={spec} but this machine has no CUDA device (torch {torch.__version__}); "
+                              f"use device=cpu or device=auto.")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ConfigError(f"device={spec} but this machine has {torch.cuda.device_count()} CUDA device(s).")
+    return device
+
+
 def validate_config(cfg) -> None:
     """Raises :class:`ConfigError` naming the first bad entry of a recipe config."""
+    resolve_device(cfg.device)
     beta = cfg.tsidm.beta
     if beta != "auto":
         if _number(cfg, "tsidm.beta") < 0:
@@ -129,7 +161,9 @@ def validate_config(cfg) -> None:
         "tsidm.batch_size", "tsidm.epochs", "policy.steps", "policy.batch_size", "eval.interval",
         "eval.episodes", "eval.last_n", "eval.max_steps", "logger.log_interval", "checkpoint.interval",
     ]
-    optional = ["tsidm.steps", "tsidm.latent_state_dim", "tsidm.latent_action_dim", "dataset.size", "threads"]
+    optional = ["tsidm.steps", "tsidm.latent_state_dim", "tsidm.latent_action_dim", "dataset.size"]
+    if cfg.threads is not None and cfg.threads != "auto":
+        optional.append("threads")
     for path in positive_ints + optional:
         value: Any = cfg
         for part in path.split("."):

@@ -29,7 +29,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
-from torchrl_tels.config import check_same_run, training_config
+from torchrl_tels.config import check_same_run, resolve_device, training_config
 from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
@@ -40,7 +40,7 @@ from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
 from torchrl_tels import training
-from torchrl_tels.training import check_finite, check_finite_state, get_rng_state, set_rng_state, sum_losses
+from torchrl_tels.training import check_finite_state, FiniteWatch, get_rng_state, set_rng_state, sum_losses
 
 __all__ = [
     "RunState",
@@ -247,10 +247,12 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     Final losses average the last 10 % of steps, which App. B.5's β rule compares.
     """
     t = cfg.tsidm
-    tsidm = make_tsidm(cfg, data)
+    device = resolve_device(cfg.device)
+    tsidm = make_tsidm(cfg, data).to(device)
     loss_module = make_tsidm_loss(cfg, tsidm, beta)
     optim = torch.optim.Adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
-    buffer = make_offline_replay_buffer(data, t.batch_size)
+    buffer = make_offline_replay_buffer(data, t.batch_size, device=device)
+    watch = FiniteWatch(f"stage 1 (TS-IDM, beta={beta:g})")
     total = tsidm_steps(cfg, len(data))
     start, tail, history = 0, [], {key: [] for key in TSIDM_TERMS}
     if run.resumes("tsidm", run.candidate):
@@ -262,13 +264,14 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     for step in progress:
         with autocast(cfg):
             losses = loss_module(buffer.sample())
-        check_finite(losses, f"stage 1 (TS-IDM, beta={beta:g})", step)
+        watch.update(losses, step)
         optim.zero_grad()
         sum_losses(losses).backward()
         optim.step()
         if step >= int(0.9 * total):  # int(): runs under 10 steps still keep their last step
-            tail.append((losses["ell_total"].item(), losses["ell_sum"].item()))
+            tail.append(torch.stack([losses["ell_total"], losses["ell_sum"]]))
         if (step + 1) % cfg.logger.log_interval == 0:
+            watch.check()
             scalars = {k: losses[k].item() for k in TSIDM_TERMS if k in losses.keys()}
             for key, value in scalars.items():
                 history[key].append((step + 1, value))
@@ -277,11 +280,16 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
                                    step + 1 + run.candidate * total)
             progress.set_postfix(loss=f"{scalars['ell_total']:.4f}")
         if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
+            watch.check()
             run.step, run.tsidm_history = step + 1, history
-            run.save(run_dir / "state.pt", loss=loss_module.state_dict(), optim=optim.state_dict(), tail=tail)
+            run.save(run_dir / "state.pt", loss=loss_module.state_dict(), optim=optim.state_dict(),
+                     tail=[pair.tolist() for pair in tail])
+    watch.check()
     check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total}")
+    tsidm = tsidm.cpu()  # saved and handed on from the CPU; stage 2 moves it where it trains
     if tsidm.latent_standardization:
         tsidm.fit_latent_standardization(data["observation"])
+    tail = [pair.tolist() if torch.is_tensor(pair) else pair for pair in tail]
     final = {key: sum(pair[i] for pair in tail) / len(tail) for i, key in enumerate(("final_loss", "final_sum"))}
     return tsidm.eval(), final, history
 
@@ -352,23 +360,34 @@ class Stage2:
     actor_options: dict
     latent_stats: dict
     monitor: TSymConsistencyMonitor
+    device: torch.device = torch.device("cpu")
+    value_watch: FiniteWatch = field(default_factory=lambda: FiniteWatch("stage 2 (value)"))
+    guide_watch: FiniteWatch = field(default_factory=lambda: FiniteWatch("stage 2 (guide)"))
 
     def update(self, cfg, batch: TensorDictBase, step: int):
-        """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V."""
+        """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V.
+
+        A non-finite loss is recorded without a host synchronization; :meth:`check_finite`
+        raises for it, naming the term and the step."""
         with autocast(cfg):
             value_losses = self.value_loss(batch)
-        check_finite(value_losses, "stage 2 (value)", step)
+        self.value_watch.update(value_losses, step)
         self.value_optim.zero_grad()
         value_losses["loss_value"].backward()
         self.value_optim.step()
         with autocast(cfg):
             guide_losses = self.guide_loss(batch)
-        check_finite(guide_losses, "stage 2 (guide)", step)
+        self.guide_watch.update(guide_losses, step)
         self.guide_optim.zero_grad()
         sum_losses(guide_losses).backward()
         self.guide_optim.step()
         self.target_updater.step()
         return value_losses, guide_losses
+
+    def check_finite(self) -> None:
+        """Raises :class:`NonFiniteLossError` if any loss was not finite since the start."""
+        self.value_watch.check()
+        self.guide_watch.check()
 
     def modules(self) -> dict:
         return {"value_loss": self.value_loss, "guide_loss": self.guide_loss,
@@ -380,11 +399,13 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
 
     Also calibrates the T-symmetry consistency monitor on the training data (:data:`MONITOR_QUANTILE`).
     """
-    tsidm.eval()
+    device = resolve_device(cfg.device)
+    tsidm.to(device).eval()
     tsidm.requires_grad_(False)
-    data = data.clone()
+    data = data.clone().to(device)
     data["next", "reward"] = cfg.dataset.reward_scale * data["next", "reward"] + cfg.dataset.reward_bias
-    buffer = make_offline_replay_buffer(data, cfg.policy.batch_size, write_transforms=[TSIDMEncoderTransform(tsidm)])
+    buffer = make_offline_replay_buffer(data, cfg.policy.batch_size, write_transforms=[TSIDMEncoderTransform(tsidm)],
+                                        device=device)
     latent_dim = tsidm.latent_state_dim
     latent_stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
     latent_stats["data_action_std"] = data["action"].std(0).mean().item()
@@ -392,8 +413,8 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     monitor = TSymConsistencyMonitor(tsidm)
     monitor.calibrate(data, quantile=MONITOR_QUANTILE)
     torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
-    value_net = make_latent_value(latent_dim, cfg.value.num_cells)
-    guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells)
+    value_net = make_latent_value(latent_dim, cfg.value.num_cells).to(device)
+    guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells).to(device)
     value_loss = LatentExpectileLoss(value_net, expectile=cfg.value.expectile, check_inputs=False)
     value_loss.make_value_estimator(gamma=cfg.value.gamma)
     g = cfg.guide
@@ -411,11 +432,12 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
         target_updater=SoftUpdate(value_loss, tau=cfg.value.target_update_rate),
         value_optim=torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=cfg.value.lr, fused=True),
         guide_optim=torch.optim.Adam(guide_loss.parameters(), lr=g.lr, fused=True),
-        actor=make_tels_actor(tsidm, guide, action_spec, **actor_options),
+        actor=make_tels_actor(tsidm, guide, action_spec, **actor_options).to(device),
         guide=guide,
         actor_options=actor_options,
         latent_stats=latent_stats,
         monitor=monitor,
+        device=device,
     )
 
 
@@ -461,7 +483,8 @@ def _monitor_record(monitor: TSymConsistencyMonitor, rollouts: list) -> dict:
     (a non-finite state) is recorded, not raised, so it never costs the finished training."""
     record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile)}
     try:
-        nexts = [monitor(rollout)["next"] for rollout in rollouts]
+        device = monitor.threshold.device
+        nexts = [monitor(rollout.to(device))["next"].cpu() for rollout in rollouts]
     except MonitorError as err:
         return {**record, "error": str(err)}
     flags = torch.cat([n["ood"].reshape(-1) for n in nexts])

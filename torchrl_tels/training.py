@@ -15,6 +15,7 @@ from torchrl_tels.checkpoint import atomic_save, load_checkpoint
 from torchrl_tels.errors import NonFiniteLossError, TelsError
 
 __all__ = [
+    "FiniteWatch",
     "NonFiniteLossError",
     "TRAINING_STATE_FORMAT",
     "check_finite",
@@ -36,6 +37,42 @@ TRAINING_STATE_FORMAT = "torchrl_tels.training_state/v1"
 def sum_losses(losses: TensorDictBase) -> torch.Tensor:
     """The objective a TorchRL loss module reports: the sum of its ``loss_*`` entries."""
     return sum(value for key, value in losses.items() if key.startswith("loss_"))
+
+
+class FiniteWatch:
+    """Catches a non-finite ``loss_*`` without a host synchronization per step.
+
+    :meth:`update` records, on the losses' device, the first step at which each term
+    was not finite; :meth:`check`, called at log intervals, raises
+    :class:`NonFiniteLossError` naming that term and step. On a GPU this keeps the
+    training loop free of ``.item()`` calls between log intervals.
+    """
+
+    def __init__(self, stage: str):
+        self.stage = stage
+        self.first_bad: dict[str, torch.Tensor] = {}
+        self.values: dict[str, torch.Tensor] = {}
+
+    def update(self, losses: TensorDictBase, step: int) -> None:
+        for key, value in losses.items():
+            if not key.startswith("loss_"):
+                continue
+            bad = ~torch.isfinite(value.detach()).all()
+            first = self.first_bad.get(key)
+            if first is None:
+                first = self.first_bad[key] = torch.full((), -1, dtype=torch.long, device=value.device)
+                self.values[key] = torch.zeros((), dtype=value.dtype, device=value.device)
+            newly = bad & (first < 0)
+            self.first_bad[key] = torch.where(newly, torch.full_like(first, step), first)
+            self.values[key] = torch.where(newly, value.detach().reshape(-1)[0], self.values[key])
+
+    def check(self) -> None:
+        for key, first in self.first_bad.items():
+            if first.item() >= 0:
+                raise NonFiniteLossError(
+                    f"{self.stage}: {key} became {self.values[key].item()} at step {first.item()}; the run stops "
+                    f"here and the last good checkpoint is kept unchanged."
+                )
 
 
 def check_finite(losses: TensorDictBase, stage: str, step: int) -> None:
@@ -80,7 +117,9 @@ def is_user_error(err: BaseException) -> bool:
 def get_rng_state() -> dict[str, Any]:
     """Every RNG the training loop draws from (replay sampling, dropout, numpy, python)."""
     py_state = random.getstate()
+    cuda = {"cuda": torch.cuda.get_rng_state_all()} if torch.cuda.is_available() else {}
     return {
+        **cuda,  # dropout on a GPU draws from the CUDA generators
         "torch": torch.get_rng_state(),
         "numpy": torch.from_numpy(np.random.get_state()[1].astype(np.int64)),
         "numpy_pos": int(np.random.get_state()[2]),
@@ -91,6 +130,8 @@ def get_rng_state() -> dict[str, Any]:
 
 def set_rng_state(state: Mapping[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(state["cuda"])
     np.random.set_state(("MT19937", state["numpy"].numpy().astype(np.uint32), state["numpy_pos"], 0, 0.0))
     random.setstate((3, tuple(state["python"]), state["python_pos"]))
 

@@ -71,18 +71,27 @@ def rollout_episodes(
     long episode).
     """
     envs = [env] if isinstance(env, EnvBase) else list(env)
+    device = _device_of(policy)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         if len(envs) == 1:
             for episode in range(episodes):
                 envs[0].set_seed(seed + episode)
-                yield envs[0].rollout(max_steps, policy, break_when_any_done=True)
+                yield envs[0].rollout(max_steps, policy, break_when_any_done=True,
+                                      auto_cast_to_device=device.type != "cpu")
             return
         for first in range(0, episodes, len(envs)):
             group = envs[: min(len(envs), episodes - first)]
-            yield from _lockstep_rollouts(policy, group, seed + first, max_steps)
+            yield from _lockstep_rollouts(policy, group, seed + first, max_steps, device)
 
 
-def _lockstep_rollouts(policy, envs: list[EnvBase], seed: int, max_steps: int) -> list[TensorDictBase]:
+def _device_of(policy) -> torch.device:
+    """Where the policy's parameters live (the CPU for a policy without any)."""
+    parameter = next(iter(policy.parameters()), None) if hasattr(policy, "parameters") else None
+    return parameter.device if parameter is not None else torch.device("cpu")
+
+
+def _lockstep_rollouts(policy, envs: list[EnvBase], seed: int, max_steps: int,
+                       device: torch.device) -> list[TensorDictBase]:
     """One episode per env, env ``j`` seeded ``seed + j``, each stepped as ``EnvBase.rollout``
     steps one env: the policy writes into the current tensordict, the env steps it, and the
     episode ends at its first done. Only the policy's inputs are stacked for its one call."""
@@ -94,7 +103,7 @@ def _lockstep_rollouts(policy, envs: list[EnvBase], seed: int, max_steps: int) -
     for _ in range(max_steps):
         inputs = TensorDict({key: torch.stack([current[j].get(key) for j in running]) for key in policy.in_keys},
                             batch_size=[len(running)])
-        outputs = policy(inputs).exclude(*policy.in_keys)
+        outputs = policy(inputs.to(device)).exclude(*policy.in_keys).to(current[running[0]].device or "cpu")
         still_running = []
         for row, j in enumerate(running):
             stepped = envs[j].step(current[j].update(outputs[row]))

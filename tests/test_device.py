@@ -1,0 +1,88 @@
+"""Where a run computes: the device and thread settings, and the checks that need no host sync.
+
+The CUDA tests skip on a machine without a GPU; ``benchmarks/gpu_check.sh`` runs them on one.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from torchrl_tels.config import ConfigError, resolve_device, resolve_threads
+from torchrl_tels.modules import TSIDM
+from torchrl_tels.objectives import TSIDMLoss
+from torchrl_tels.training import FiniteWatch, NonFiniteLossError
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+
+
+def test_device_names():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    for bad in ("gpu", "cuda:x", "CPU", "mps:0"):
+        with pytest.raises(ConfigError, match=r"device must be auto, cpu, cuda or cuda:N, got"):
+            resolve_device(bad)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_cuda_refused_without_a_gpu():
+    with pytest.raises(ConfigError, match=r"device=cuda:1 but this machine has no CUDA device"):
+        resolve_device("cuda:1")
+
+
+def test_thread_setting():
+    assert resolve_threads("auto") == max(1, (os.cpu_count() or 1) // 2)
+    assert resolve_threads(None) == resolve_threads("auto")
+    assert resolve_threads(3) == 3
+
+
+def _losses(value: float) -> TensorDict:
+    return TensorDict({"loss_a": torch.tensor(1.0), "loss_b": torch.tensor(value), "ell_x": torch.tensor(float("nan"))}, [])
+
+
+def test_finite_watch_names_the_first_bad_term_and_step():
+    watch = FiniteWatch("stage X")
+    for step in range(5):
+        watch.update(_losses(2.0), step)
+    watch.check()  # finite so far; ell_* entries are not losses and are not watched
+    watch.update(_losses(float("inf")), 5)
+    watch.update(_losses(float("nan")), 6)
+    with pytest.raises(NonFiniteLossError, match=r"^stage X: loss_b became inf at step 5; the run stops here"):
+        watch.check()
+
+
+def _batch(n=64, device="cpu"):
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(n, 11, generator=g)
+    td = TensorDict({"observation": obs, "action": torch.rand(n, 3, generator=g) * 2 - 1,
+                     ("next", "observation"): obs + 0.1 * torch.randn(n, 11, generator=g)}, [n])
+    return td.to(device)
+
+
+@cuda
+def test_tsidm_loss_on_cuda_matches_cpu():
+    torch.manual_seed(0)
+    tsidm = TSIDM(11, 3, inverse_dropout=None)
+    cpu = TSIDMLoss(tsidm, beta=1.0)(_batch())
+    gpu = TSIDMLoss(copy.deepcopy(tsidm).cuda(), beta=1.0)(_batch(device="cuda"))
+    for key in ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym"):
+        torch.testing.assert_close(gpu[key].cpu(), cpu[key], rtol=1e-3, atol=1e-5)
+
+
+@cuda
+def test_recipe_runs_on_cuda_and_its_files_load_on_the_cpu(tmp_path):
+    run_dir = tmp_path / "run"
+    subprocess.run([sys.executable, str(REPO_ROOT / "recipes" / "tels_offline.py"), "budget=smoke", "device=cuda",
+                    f"run_dir={run_dir}", "logger.wandb_mode=disabled"], check=True, cwd=REPO_ROOT)
+    results = json.loads((run_dir / "results.json").read_text())
+    assert len(results["evaluations"]) == 2
+    tsidm = TSIDM.load(run_dir / "tsidm.pt", observation_dim=11, action_dim=3)
+    assert next(tsidm.parameters()).device == torch.device("cpu")
