@@ -51,7 +51,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from tensordict.nn.distributions import NormalParamExtractor
 from torch import nn
@@ -63,7 +63,8 @@ from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
 from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
 from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normalized_score, TSIDMEncoderTransform
-from torchrl_tels.training import check_finite
+from torchrl_tels.config import resolve_device
+from torchrl_tels.training import FiniteWatch
 
 __all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "train_baseline"]
 
@@ -172,11 +173,11 @@ def _build_iql(obs_key, obs_dim, action_spec, hp):
 
     def update(batch, step):
         losses = loss(batch)
-        check_finite(losses, "IQL", step)
         optim.zero_grad(set_to_none=True)
         (losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_value"]).backward()
         optim.step()
         target.step()
+        return losses
 
     return actor, update
 
@@ -197,17 +198,17 @@ def _build_td3bc(obs_key, obs_dim, action_spec, hp):
     def update(batch, step):
         # TorchRL's td3_bc script: the critic every step; the actor and both targets every `delay` steps.
         q_loss, _ = loss.qvalue_loss(batch)
-        check_finite({"loss_qvalue": q_loss}, "TD3+BC", step)
+        losses = {"loss_qvalue": q_loss}
         critic_optim.zero_grad(set_to_none=True)
         q_loss.backward()
         critic_optim.step()
         if step % hp["policy_update_delay"] == 0:
-            actor_loss, _ = loss.actor_loss(batch)
-            check_finite({"loss_actor": actor_loss}, "TD3+BC", step)
+            losses["loss_actor"], _ = loss.actor_loss(batch)
             actor_optim.zero_grad(set_to_none=True)
-            actor_loss.backward()
+            losses["loss_actor"].backward()
             actor_optim.step()
             target.step()
+        return TensorDict(losses, [])
 
     return actor, update
 
@@ -219,10 +220,10 @@ def _build_bc(obs_key, obs_dim, action_spec, hp):
 
     def update(batch, step):
         losses = loss(batch)
-        check_finite(losses, "BC", step)
         optim.zero_grad(set_to_none=True)
         losses["loss_bc"].backward()
         optim.step()
+        return losses
 
     return actor, update
 
@@ -244,6 +245,7 @@ def train_baseline(
     eval_max_steps: int = 1000,
     eval_batched: bool = True,
     threads: int | None = None,
+    device: str = "auto",
     tsidm_path: str | Path | None = None,
     hyperparameters: Mapping[str, Any] | None = None,
     log_fn: Callable[[Mapping[str, float], int], None] | None = None,
@@ -270,6 +272,8 @@ def train_baseline(
             ``eval.batched`` (the same episodes up to float rounding; see
             :func:`~torchrl_tels.envs.rollout_episodes`).
         threads: torch intra-op threads; ``None`` keeps torch's setting.
+        device: ``auto`` (CUDA where available), ``cpu``, ``cuda`` or ``cuda:N``: the networks and
+            the replay buffer live there; evaluation envs run on the CPU.
         tsidm_path: the TS-IDM file (``tsidm.pt`` of a TELS run) for ``iql_latent``.
         hyperparameters: overrides of :data:`HYPERPARAMETERS` ``[method]``.
         log_fn: called with ``({"eval/normalized_score": ..., ...}, step)`` after each evaluation.
@@ -291,6 +295,7 @@ def train_baseline(
     if unknown:
         raise ValueError(f"unknown {method} hyperparameter(s) {sorted(unknown)}.")
     hp = {**copy.deepcopy(HYPERPARAMETERS[method]), **dict(hyperparameters or {})}
+    device = resolve_device(device)
     if threads:
         torch.set_num_threads(int(threads))
     start_time = time.perf_counter()
@@ -335,16 +340,20 @@ def train_baseline(
     envs = make_eval_envs(task.env_id, eval_episodes if eval_batched else 1, wrap=wrap)
     action_spec = envs[0].action_spec_unbatched
 
-    buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed)
-    actor, update = _BUILDERS[method](obs_key, net_in_dim, action_spec, hp)
+    buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed,
+                                        device=device)
+    with device:  # every network and optimizer state is created there
+        actor, update = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp)
+    watch = FiniteWatch({"iql": "IQL", "iql_latent": "IQL", "td3bc": "TD3+BC", "bc": "BC"}[method])
     setup_s = time.perf_counter() - start_time
 
     evaluations = []
     eval_s = 0.0
     loop_start = time.perf_counter()
     for step in range(steps):
-        update(buffer.sample(), step)
+        watch.update(update(buffer.sample(), step), step)
         if (step + 1) % eval_interval == 0 or step + 1 == steps:
+            watch.check()  # a non-finite loss is caught here, named with its step, without a sync per step
             eval_start = time.perf_counter()
             actor.eval()
             returns = evaluate_policy(actor, envs, eval_episodes, max_steps=eval_max_steps,

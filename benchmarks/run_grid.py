@@ -114,6 +114,8 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
         cmd.append(f"--tsidm-steps={args.tsidm_steps}")
     if args.eval_batched:
         cmd.append("--eval-batched")
+    if args.device != "auto":
+        cmd.append(f"--device={args.device}")
     if args.threads:
         cmd.append(f"--threads={args.threads}")
     return cmd
@@ -136,6 +138,7 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode) + [
         f"policy.steps={args.steps}", f"policy.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
         f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}", f"eval.batched={args.eval_batched}",
+        f"device={args.device}",
     ]
     if method in ABLATIONS:
         overrides += [f"tsidm.ablation={ABLATIONS[method]}", f"logger.exp_name={method}_{task}_seed{seed}"]
@@ -204,7 +207,7 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
         results = train_baseline(
             method, task, steps=args.steps, seed=seed, batch_size=BATCH_SIZE, eval_interval=args.eval_interval,
             eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, eval_batched=args.eval_batched,
-            threads=args.threads,
+            threads=args.threads, device=args.device,
             tsidm_path=tsidm_path, log_fn=logger.log_scalars if logger else None,
             hyperparameters=MAZE_HYPERPARAMETERS.get(method) if is_maze(task) else None,
         )
@@ -487,6 +490,7 @@ def parse_args(argv=None):
                         help="TS-IDM steps for tels/iql_latent (default: the recipe's 1000 epochs, Table 10)")
     parser.add_argument("--eval-interval", "--eval_interval", type=int, default=5000)
     parser.add_argument("--eval-episodes", "--eval_episodes", type=int, default=10)
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (auto: CUDA where there is one)")
     parser.add_argument("--eval-batched", "--eval_batched", action="store_true",
                         help="run each evaluation's episodes as one batch of envs (the grid's results ran "
                              "them one at a time, which this keeps by default)")
