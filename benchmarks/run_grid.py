@@ -368,6 +368,7 @@ def render_table(results_dir: Path) -> Path:
         lines.append(f"| {LABELS[method]} | {threads or 'default'} | {machine} | {len(runs)} | {policy_cell} | "
                      f"{tsidm_cell} |")
 
+    lines += aggregate_section(found, results_dir / "plots")
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -376,6 +377,79 @@ def render_table(results_dir: Path) -> Path:
     out = results_dir / "TABLE.md"
     write_text(out, "\n".join(lines))
     return out
+
+
+#: The sets the aggregate pools: the four shared D4RL 10k locomotion sets.
+AGGREGATE_TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k",
+                   "halfcheetah-medium-v2-10k")
+
+
+def score_matrix(found: dict, method: str, tasks=AGGREGATE_TASKS):
+    """``[seeds, tasks]`` final scores of ``method`` for the seeds every task has, or ``None``."""
+    import numpy as np
+
+    by_task = [{r["seed"]: r["final_normalized_score_mean"] for r in found.get(t, {}).get(method, [])} for t in tasks]
+    seeds = sorted(set.intersection(*(set(d) for d in by_task))) if by_task else []
+    if not seeds:
+        return None
+    return np.array([[d[s] for d in by_task] for s in seeds])
+
+
+def aggregate_section(found: dict, folder: Path) -> list[str]:
+    """IQM and mean over tasks × seeds with stratified-bootstrap 95 % intervals (``benchmarks.aggregate``),
+    as a table and a PNG with the performance profiles."""
+    from benchmarks import aggregate
+
+    matrices = {m: score_matrix(found, m) for m in TABLE_COLUMNS}
+    matrices = {m: x for m, x in matrices.items() if x is not None}
+    if not matrices:
+        return []
+    lines = ["", "## Aggregate over the four shared sets", "",
+             "Interquartile mean (IQM) and mean of the final scores over tasks × seeds, with 95 % "
+             "stratified-bootstrap intervals (2,000 resamples of each task's seeds; `benchmarks/aggregate.py`, "
+             "rliable's definitions). Only seeds present on all four sets enter; each row's budget is the "
+             "grid's (see the table above).", "",
+             "| method | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|"]
+    estimates = {}
+    for method, scores in matrices.items():
+        estimates[method] = [aggregate.stratified_bootstrap_ci(scores, statistic)
+                             for statistic in (aggregate.iqm, aggregate.mean)]
+        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in estimates[method]]
+        lines.append(f"| {LABELS[method]} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
+    path = _aggregate_plot(matrices, estimates, folder)
+    return lines + ["", f"![aggregate](plots/{path.name})"]
+
+
+def _aggregate_plot(matrices: dict, estimates: dict, folder: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from benchmarks import aggregate
+
+    fig, (ax_ci, ax_profile) = plt.subplots(1, 2, figsize=(10, 3.8))
+    methods = list(matrices)
+    for row, method in enumerate(methods):
+        for col, (name, (point, low, high)) in enumerate(zip(("IQM", "mean"), estimates[method])):
+            y = row + (0.15 if col else -0.15)
+            ax_ci.plot([low, high], [y, y], color=f"C{col}", linewidth=4, alpha=0.6,
+                       label=name if row == 0 else None)
+            ax_ci.plot([point], [y], "k|", markersize=10)
+    ax_ci.set_yticks(range(len(methods)), [LABELS[m] for m in methods])
+    ax_ci.set_xlabel("D4RL normalized score")
+    ax_ci.set_title("95 % stratified-bootstrap intervals")
+    ax_ci.legend(fontsize=8)
+    taus = np.linspace(0, max(float(x.max()) for x in matrices.values()) * 1.05, 100)
+    for method in methods:
+        ax_profile.plot(taus, aggregate.performance_profile(matrices[method], taus), label=LABELS[method])
+    ax_profile.set_xlabel("score τ")
+    ax_profile.set_ylabel("fraction of runs × tasks above τ")
+    ax_profile.set_title("performance profiles")
+    ax_profile.legend(fontsize=8)
+    fig.tight_layout()
+    return save_figure(fig, folder / "aggregate.png")
 
 
 def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:

@@ -167,8 +167,31 @@ def untangle_table() -> list[str]:
             f"| task | seeds | {on_label} | {off_label} | off − on |", "|---|---|---|---|---|", *rows, ""]
 
 
+def aggregate_table(arms=ARMS) -> list[str]:
+    """IQM and mean over the four sets × the seeds every set has, with stratified-bootstrap intervals."""
+    import numpy as np
+
+    from benchmarks import aggregate
+
+    rows = []
+    for label, sources in arms:
+        by_task = [_runs(sources, task) for task in summary.TASKS]
+        seeds = sorted(set.intersection(*(set(runs) for runs in by_task)))
+        if len(seeds) < 2:
+            continue
+        scores = np.array([[runs[s]["final_normalized_score_mean"] for runs in by_task] for s in seeds])
+        cells = [aggregate.stratified_bootstrap_ci(scores, statistic) for statistic in (aggregate.iqm, aggregate.mean)]
+        rows.append(f"| {label} | {len(seeds)} × {len(by_task)} | "
+                    + " | ".join(f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in cells) + " |")
+    if not rows:
+        return []
+    return ["Over the four sets (arms with at least two seeds on every set): interquartile mean and mean of the "
+            "final scores over tasks × seeds, with 95 % stratified-bootstrap intervals (`benchmarks/aggregate.py`):",
+            "", "| arm | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|", *rows, ""]
+
+
 def report() -> str:
-    lines = shrink_table() + untangle_table()
+    lines = shrink_table() + aggregate_table() + untangle_table()
     for task in summary.TASKS:
         lines += task_table(task)
     task, arms = HELD_OUT
