@@ -337,8 +337,8 @@ def train_baseline(
         obs_key, net_in_dim = "observation", obs_dim
         write_transforms = []
         wrap = lambda env: TransformedEnv(env, DoubleToFloat())
-    envs = make_eval_envs(task.env_id, eval_episodes if eval_batched else 1, wrap=wrap)
-    action_spec = envs[0].action_spec_unbatched
+    env = make_eval_envs(task.env_id, eval_episodes if eval_batched else 1, wrap=wrap)
+    action_spec = env.action_spec_unbatched
 
     buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed,
                                         device=device)
@@ -356,7 +356,7 @@ def train_baseline(
             watch.check()  # a non-finite loss is caught here, named with its step, without a sync per step
             eval_start = time.perf_counter()
             actor.eval()
-            returns = evaluate_policy(actor, envs, eval_episodes, max_steps=eval_max_steps,
+            returns = evaluate_policy(actor, env, eval_episodes, max_steps=eval_max_steps,
                                       seed=seed * 100_000 + (step + 1))
             actor.train()
             scores = [normalized_score(task, r) for r in returns]
@@ -395,4 +395,4 @@ def train_baseline(
         "hyperparameters": hp,
         **extra,
     }
-    return (results, actor, envs[0]) if return_policy else results
+    return (results, actor, env) if return_policy else results

@@ -87,8 +87,8 @@ def train(cfg: DictConfig) -> dict:
     # Algorithm 1, lines 1-4: train the TS-IDM (Eq. 3-7).
     tsidm = make_stage1(cfg, data, run, run_dir, logger, pretrained)
     # Line 6: encode the dataset with the frozen φ_s; build V (Eq. 8), π_g (Eq. 9/10), the actor (Eq. 11).
-    envs = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1)  # episodes run as one batch
-    stage2 = make_stage2(cfg, data, tsidm, envs[0].action_spec)
+    env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1)  # the episodes as one batch
+    stage2 = make_stage2(cfg, data, tsidm, env.action_spec_unbatched)
     stage2.monitor.save(run_dir / "monitor.pt")  # calibrated on the training data; recipes/export_policy.py reads it
     start = 0
     if run.resumes("policy"):
@@ -111,7 +111,7 @@ def train(cfg: DictConfig) -> dict:
             if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
                 with run.time("eval_s"):  # the final evaluation also records the consistency monitor
                     monitor = stage2.monitor if step + 1 == cfg.policy.steps else None
-                    run.evaluations.append(evaluate(cfg, stage2.actor, envs, task, step + 1, stage2.latent_stats,
+                    run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats,
                                                     monitor=monitor))
                 logger.log_scalars({"eval/score": run.evaluations[-1]["score"],
                                     "eval/guide_step_rms": run.evaluations[-1]["guide_step_rms"]}, step + 1)

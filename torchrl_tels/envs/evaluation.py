@@ -1,13 +1,13 @@
 """Deterministic policy evaluation in a gymnasium env through TorchRL (paper §4 protocol)."""
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase, GymEnv
-from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from torchrl.envs import EnvBase, GymEnv, SerialEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_tels.errors import TaskError
 
@@ -26,12 +26,18 @@ def make_eval_env(env_id: str, **kwargs) -> GymEnv:
         raise _cannot_create(env_id, err) from None
 
 
-def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] | None = None) -> list[EnvBase]:
-    """``copies`` evaluation envs that :func:`rollout_episodes` steps together, each a
-    :func:`make_eval_env` passed through ``wrap`` (e.g. into a ``TransformedEnv``)."""
+def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] | None = None) -> EnvBase:
+    """``copies`` evaluation envs stepped together: a TorchRL ``SerialEnv`` (batch size ``[copies]``) of
+    :func:`make_eval_env` each passed through ``wrap`` (e.g. into a ``TransformedEnv``), or the one env
+    itself when ``copies`` is 1. :func:`rollout_episodes` runs one episode on each copy, with one policy
+    call per step for all of them."""
     if copies < 1:
         raise ValueError(f"make_eval_envs: copies must be >= 1, got {copies}.")
-    return [make_eval_env(env_id) if wrap is None else wrap(make_eval_env(env_id)) for _ in range(copies)]
+    make = (lambda: make_eval_env(env_id)) if wrap is None else (lambda: wrap(make_eval_env(env_id)))
+    if copies == 1:
+        return make()
+    make().close()  # an unknown id fails here, with make_eval_env's clear error, not inside a worker
+    return SerialEnv(copies, make)
 
 
 def eval_env_spaces(env_id: str):
@@ -51,7 +57,7 @@ def eval_env_spaces(env_id: str):
 @torch.no_grad()
 def rollout_episodes(
     policy: TensorDictModuleBase,
-    env: EnvBase | Sequence[EnvBase],
+    env: EnvBase,
     episodes: int,
     *,
     seed: int,
@@ -63,25 +69,30 @@ def rollout_episodes(
     reproducible whatever ran before it (a resumed run scores the same as an
     uninterrupted one). Each rollout stops at its first done.
 
-    ``env`` may be a list of ``k`` copies of one env (:func:`make_eval_envs`): the
-    episodes then run ``k`` at a time in lockstep, and one policy call per step covers
-    every episode still running, which is where evaluation spends its time. Episode ``i``
-    runs on copy ``i % k`` with the same seed, so the episodes are one env's, up to the
-    float rounding of a batched matrix product (which a chaotic body can amplify over a
-    long episode).
+    With a batch of ``k`` envs (:func:`make_eval_envs`), the episodes run ``k`` at a
+    time and one policy call per step covers all of them, which is where evaluation
+    spends its time; copy ``j`` is reset with the seed of its episode, so the episodes
+    are one env's, up to the float rounding of a batched matrix product (which a
+    chaotic body can amplify over a long episode). The policy may live on another
+    device than the env: its inputs are moved to it and its outputs back.
     """
-    envs = [env] if isinstance(env, EnvBase) else list(env)
-    device = _device_of(policy)
+    cast = _device_of(policy) != (env.device or torch.device("cpu"))
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        if len(envs) == 1:
+        if not env.batch_size:
             for episode in range(episodes):
-                envs[0].set_seed(seed + episode)
-                yield envs[0].rollout(max_steps, policy, break_when_any_done=True,
-                                      auto_cast_to_device=device.type != "cpu")
+                env.set_seed(seed + episode)
+                yield env.rollout(max_steps, policy, break_when_any_done=True, auto_cast_to_device=cast)
             return
-        for first in range(0, episodes, len(envs)):
-            group = envs[: min(len(envs), episodes - first)]
-            yield from _lockstep_rollouts(policy, group, seed + first, max_steps, device)
+        copies = env.batch_size[0]
+        for first in range(0, episodes, copies):
+            # set_seed of one env, copy by copy: reset with the seed; the rollout then resets again
+            env.reset(list_of_kwargs=[{"seed": seed + first + j} for j in range(copies)])
+            batch = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True,
+                                auto_cast_to_device=cast)
+            done = batch["next", "done"].reshape(copies, -1)
+            for j in range(min(copies, episodes - first)):
+                ends = done[j].nonzero()
+                yield batch[j, : int(ends[0]) + 1 if len(ends) else done.shape[1]]
 
 
 def _device_of(policy) -> torch.device:
@@ -90,36 +101,9 @@ def _device_of(policy) -> torch.device:
     return parameter.device if parameter is not None else torch.device("cpu")
 
 
-def _lockstep_rollouts(policy, envs: list[EnvBase], seed: int, max_steps: int,
-                       device: torch.device) -> list[TensorDictBase]:
-    """One episode per env, env ``j`` seeded ``seed + j``, each stepped as ``EnvBase.rollout``
-    steps one env: the policy writes into the current tensordict, the env steps it, and the
-    episode ends at its first done. Only the policy's inputs are stacked for its one call."""
-    for j, env in enumerate(envs):
-        env.set_seed(seed + j)
-    current = [env.reset() for env in envs]
-    steps: list[list[TensorDictBase]] = [[] for _ in envs]
-    running = list(range(len(envs)))
-    for _ in range(max_steps):
-        inputs = TensorDict({key: torch.stack([current[j].get(key) for j in running]) for key in policy.in_keys},
-                            batch_size=[len(running)])
-        outputs = policy(inputs.to(device)).exclude(*policy.in_keys).to(current[running[0]].device or "cpu")
-        still_running = []
-        for row, j in enumerate(running):
-            stepped = envs[j].step(current[j].update(outputs[row]))
-            steps[j].append(stepped.copy())
-            if not stepped["next", "done"].any():
-                still_running.append(j)
-                current[j] = step_mdp(stepped, keep_other=True)
-        running = still_running
-        if not running:
-            break
-    return [torch.stack(episode) for episode in steps]
-
-
 def evaluate_policy(
     policy: TensorDictModuleBase,
-    env: EnvBase | Sequence[EnvBase],
+    env: EnvBase,
     episodes: int,
     *,
     seed: int,
