@@ -11,21 +11,26 @@
 # Device call (from the repository root; $OUT comes back):
 #   bash benchmarks/gpu_check.sh            with carry: [".whl"] and timeout_s 540
 # Several seeds in one process are not implemented yet, so their row stays "not measured".
+# Not yet run on a GPU machine: no session so far was lent one.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-WHEELS="torchrl==0.14.1 tensordict==0.14.0 gymnasium==1.2.2 mujoco==3.3.7 hydra-core==1.3.2 omegaconf==2.3.0
-antlr4-python3-runtime==4.9.3 minari==0.5.3 wandb==0.23.1 cloudpickle==3.1.2 farama-notifications==0.0.4
-glfw==2.10.0 pyvers==0.1.0 orjson==3.11.4"
+WHEELS="torchrl==0.14.1 tensordict==0.14.3 hoptorch==0.1.4 pyvers==0.2.3 orjson==3.13.0 gymnasium==1.4.0
+farama-notifications==0.0.6 cloudpickle==3.1.3 mujoco==4.0.1 mujoco-core==4.0.1 mujoco-studio==4.0.1
+mujoco-studio-wasm==4.0.1 glfw==2.11.0 pyopengl==3.1.10 websockets==17.4 hydra-core==1.3.8 omegaconf==2.3.1
+minari==0.5.4 typer==0.29.2 shellingham==1.5.4 annotated-doc==0.0.7"
 if [ "${1:-}" = "--download" ]; then
   grep -qx "/.whl/" .git/info/exclude 2>/dev/null || echo "/.whl/" >> .git/info/exclude
   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-    --platform manylinux2014_x86_64 --platform manylinux1_x86_64 --platform any -d .whl $WHEELS
+    --platform manylinux2014_x86_64 --platform manylinux1_x86_64 --platform any -d .whl $WHEELS || exit 1
+  # hydra's parser runtime is published as a source archive only; pure Python, built there offline
+  python3 -m pip download --no-deps --no-binary=:all: -d .whl antlr4-python3-runtime==4.9.3
   exit $?
 fi
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 MUJOCO_GL=egl
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --no-cache-dir --upgrade \
+  --target /tmp/site .whl/*.whl .whl/*.tar.gz \
   || { echo "wheel install failed"; exit 1; }
 export PYTHONPATH=/tmp/site:$PWD
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
