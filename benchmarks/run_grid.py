@@ -369,6 +369,7 @@ def render_table(results_dir: Path) -> Path:
                      f"{tsidm_cell} |")
 
     lines += aggregate_section(found, results_dir / "plots")
+    lines += flatness_section(found, tasks)
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -418,6 +419,34 @@ def aggregate_section(found: dict, folder: Path) -> list[str]:
         lines.append(f"| {LABELS[method]} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
     path = _aggregate_plot(matrices, estimates, folder)
     return lines + ["", f"![aggregate](plots/{path.name})"]
+
+
+def flatness_section(found: dict, tasks: list[str]) -> list[str]:
+    """Has each method's learning curve flattened at its budget? The slope of a least-squares line through
+    the last half of its evaluations (seed-mean score against step), per 1k steps."""
+    import numpy as np
+
+    rows = []
+    for task in tasks:
+        for method in TABLE_COLUMNS:
+            runs = found[task].get(method, [])
+            curves = [{e["step"]: e["score"] for e in r.get("evaluations", [])} for r in runs]
+            steps = sorted(set.intersection(*(set(c) for c in curves))) if curves else []
+            if len(steps) < 4:
+                continue
+            late = steps[len(steps) // 2:]
+            means = [statistics.fmean(c[s] for c in curves) for s in late]
+            slope = float(np.polyfit(np.array(late) / 1000.0, means, 1)[0])
+            rows.append(f"| {task} | {LABELS[method]} | {_steps_label(steps[-1])} | {len(runs)} | "
+                        f"{means[0]:.1f} → {means[-1]:.1f} | {slope:+.2f} |")
+    if not rows:
+        return []
+    return ["", "## Have the learning curves flattened?", "",
+            "For each method and set: the seed-mean evaluation score over the second half of training and the "
+            "slope of a least-squares line through it (points per 1k steps). A slope far from 0 means the "
+            "budget stops the method while it is still changing.", "",
+            "| task | method | budget | seeds | second half: first → last evaluation | slope per 1k steps |",
+            "|---|---|---|---|---|---|", *rows]
 
 
 def _aggregate_plot(matrices: dict, estimates: dict, folder: Path) -> Path:
