@@ -40,6 +40,7 @@ import argparse
 import tempfile
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -160,6 +161,45 @@ def detector_scores(td: TensorDictBase, monitor: TSymConsistencyMonitor, model: 
     return out
 
 
+@dataclass
+class Detectors:
+    """The monitor (with its calibrated threshold) and the two simple detectors, fitted on one training set."""
+
+    monitor: TSymConsistencyMonitor
+    threshold: float
+    model: nn.Module
+    train_states: torch.Tensor
+    loc: torch.Tensor
+    scale: torch.Tensor
+    beta: float
+    tsidm_final_loss: dict
+    wall_s: dict
+
+    def scores(self, td: TensorDictBase) -> dict[str, np.ndarray]:
+        return detector_scores(td, self.monitor, self.model, self.train_states, self.loc, self.scale)
+
+
+def fit_detectors(train: TensorDictBase, overrides, *, seed: int, tsidm_steps: int, model_steps: int,
+                  quantile: float) -> Detectors:
+    """A TS-IDM by the recipe's stage 1 (its config plus ``overrides``) and its calibrated monitor, a one-step
+    dynamics model, and the normalized training states for the nearest-state distance, all on ``train``."""
+    clock = time.perf_counter()
+    cfg = recipe_config([f"seed={seed}", f"tsidm.steps={tsidm_steps}", "checkpoint.interval=1000000000", *overrides])
+    beta = 1.0 if cfg.tsidm.beta == "auto" else float(cfg.tsidm.beta)
+    torch.manual_seed(seed)
+    with tempfile.TemporaryDirectory() as scratch:
+        tsidm, final, _ = fit_tsidm(cfg, train, beta, RunState(config={}), Path(scratch))
+    tsidm_s = time.perf_counter() - clock
+    monitor = TSymConsistencyMonitor(tsidm)
+    threshold = monitor.calibrate(train, quantile=quantile)
+    loc, scale = tsidm.obs_loc, tsidm.obs_scale
+    clock = time.perf_counter()
+    model = train_dynamics_model(train, loc, scale, model_steps, seed)
+    model_s = time.perf_counter() - clock
+    return Detectors(monitor, threshold, model, (train["observation"] - loc) / scale, loc, scale, beta, final,
+                     {"tsidm": tsidm_s, "dynamics_model": model_s})
+
+
 # ------------------------------------------------------------------------ run
 def subsample(td: TensorDictBase, n: int, seed: int) -> TensorDictBase:
     if n >= len(td):
@@ -174,21 +214,8 @@ def run(args) -> dict:
     train, held = split_trajectories(data, 0.8, args.seed)
     print(f"{args.dataset}: {len(train)} training and {len(held)} held-out transitions", flush=True)
 
-    clock = time.perf_counter()
-    cfg = recipe_config([f"seed={args.seed}", f"tsidm.steps={args.tsidm_steps}", "checkpoint.interval=1000000000",
-                         *args.override])
-    beta = 1.0 if cfg.tsidm.beta == "auto" else float(cfg.tsidm.beta)
-    torch.manual_seed(args.seed)
-    with tempfile.TemporaryDirectory() as scratch:
-        tsidm, final, _ = fit_tsidm(cfg, train, beta, RunState(config={}), Path(scratch))
-    tsidm_s = time.perf_counter() - clock
-    monitor = TSymConsistencyMonitor(tsidm)
-    threshold = monitor.calibrate(train, quantile=args.quantile)
-    loc, scale = tsidm.obs_loc, tsidm.obs_scale
-    clock = time.perf_counter()
-    model = train_dynamics_model(train, loc, scale, args.model_steps, args.seed)
-    model_s = time.perf_counter() - clock
-    train_states = (train["observation"] - loc) / scale
+    detectors = fit_detectors(train, args.override, seed=args.seed, tsidm_steps=args.tsidm_steps,
+                              model_steps=args.model_steps, quantile=args.quantile)
 
     rng = np.random.default_rng(args.seed)
     states = subsample(held, args.replay, args.seed)
@@ -200,7 +227,7 @@ def run(args) -> dict:
         print(f"skip other_dataset: {args.other}: {type(err).__name__}: {err}", flush=True)
     for name, plant in PLANTS.items():
         sets[name] = replay(states, states["action"].numpy(), plant=plant)
-    scores = {name: detector_scores(td, monitor, model, train_states, loc, scale) for name, td in sets.items()}
+    scores = {name: detectors.scores(td) for name, td in sets.items()}
 
     reference = {name: "held_out" for name in sets if name != "held_out"}
     paired = {name: "nominal_replay" for name in PLANTS}
@@ -208,6 +235,7 @@ def run(args) -> dict:
     for name, ref in [*reference.items(), *((f"{n} vs nominal_replay", r) for n, r in paired.items())]:
         shifted = name.split(" vs ")[0]
         table[name] = {d: auroc(scores[ref][d], scores[shifted][d]) for d in DETECTORS}
+    monitor, threshold = detectors.monitor, detectors.threshold
     flag_rate = {name: float((scores[name][monitor.score_key] > threshold).mean()) for name in sets}
     return {
         "command": invocation(),
@@ -215,15 +243,15 @@ def run(args) -> dict:
         "env": ENV_ID,
         "seed": args.seed,
         "tsidm_steps": args.tsidm_steps,
-        "tsidm_beta": beta,
-        "tsidm_final_loss": final,
+        "tsidm_beta": detectors.beta,
+        "tsidm_final_loss": detectors.tsidm_final_loss,
         "overrides": list(args.override),
         "dynamics_model_steps": args.model_steps,
         "sizes": {name: len(td) for name, td in sets.items()},
         "monitor": {"score": monitor.score_key, "quantile": args.quantile, "threshold": threshold,
                     "flag_rate": flag_rate},
         "auroc": table,
-        "wall_s": {"tsidm": tsidm_s, "dynamics_model": model_s},
+        "wall_s": detectors.wall_s,
         "threads": args.threads,
         "machine": machine_description(),
     }

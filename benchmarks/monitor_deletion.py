@@ -16,20 +16,14 @@ Writes ``benchmarks/results/monitor/deletion_<setup>_seed<k>.json`` (skipped whe
 from __future__ import annotations
 
 import argparse
-import tempfile
-import time
 from pathlib import Path
 
 import torch
 
 from benchmarks.harness import invocation, machine_description, repo_relative, skip_existing, write_result
-from benchmarks.monitor_auroc import (auroc, DEFAULT_RESULTS, DETECTORS, detector_scores, split_trajectories,
-                                      subsample, train_dynamics_model)
+from benchmarks.monitor_auroc import auroc, DEFAULT_RESULTS, DETECTORS, fit_detectors, split_trajectories, subsample
 from benchmarks.ood_deletion import ensure_dataset, SETUPS
-from benchmarks.step_floor import recipe_config
 from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes
-from torchrl_tels.envs import TSymConsistencyMonitor
-from torchrl_tels.trainer import fit_tsidm, RunState
 
 
 def run(args) -> dict:
@@ -42,21 +36,12 @@ def run(args) -> dict:
     train, held = split_trajectories(kept, 0.8, args.seed)
     print(f"{args.setup}: {len(inside)} transitions in the regions, {len(train)} training, {len(held)} held out",
           flush=True)
-    cfg = recipe_config(["domain=maze", f"seed={args.seed}", f"tsidm.steps={args.tsidm_steps}",
-                         "checkpoint.interval=1000000000"])
-    beta = 1.0 if cfg.tsidm.beta == "auto" else float(cfg.tsidm.beta)
-    clock = time.perf_counter()
-    torch.manual_seed(args.seed)
-    with tempfile.TemporaryDirectory() as scratch:
-        tsidm, final, _ = fit_tsidm(cfg, train, beta, RunState(config={}), Path(scratch))
-    tsidm_s = time.perf_counter() - clock
-    monitor = TSymConsistencyMonitor(tsidm)
-    threshold = monitor.calibrate(train, quantile=args.quantile)
-    loc, scale = tsidm.obs_loc, tsidm.obs_scale
-    model = train_dynamics_model(train, loc, scale, args.model_steps, args.seed)
-    train_states = (train["observation"] - loc) / scale
-    sets = {"held_out": subsample(held, args.points, args.seed), "deleted_regions": subsample(inside, args.points, args.seed)}
-    scores = {name: detector_scores(td, monitor, model, train_states, loc, scale) for name, td in sets.items()}
+    detectors = fit_detectors(train, ["domain=maze"], seed=args.seed, tsidm_steps=args.tsidm_steps,
+                              model_steps=args.model_steps, quantile=args.quantile)
+    monitor, threshold = detectors.monitor, detectors.threshold
+    sets = {"held_out": subsample(held, args.points, args.seed),
+            "deleted_regions": subsample(inside, args.points, args.seed)}
+    scores = {name: detectors.scores(td) for name, td in sets.items()}
     return {
         "command": invocation(),
         "setup": args.setup,
@@ -64,14 +49,14 @@ def run(args) -> dict:
         "boxes": [list(map(float, box)) for box in boxes],
         "seed": args.seed,
         "tsidm_steps": args.tsidm_steps,
-        "tsidm_beta": beta,
-        "tsidm_final_loss": final,
+        "tsidm_beta": detectors.beta,
+        "tsidm_final_loss": detectors.tsidm_final_loss,
         "dynamics_model_steps": args.model_steps,
         "sizes": {name: len(td) for name, td in sets.items()},
         "monitor": {"score": monitor.score_key, "quantile": args.quantile, "threshold": threshold,
                     "flag_rate": {name: float((scores[name][monitor.score_key] > threshold).mean()) for name in sets}},
         "auroc": {"deleted_regions": {d: auroc(scores["held_out"][d], scores["deleted_regions"][d]) for d in DETECTORS}},
-        "wall_s": {"tsidm": tsidm_s},
+        "wall_s": detectors.wall_s,
         "threads": args.threads,
         "machine": machine_description(),
     }

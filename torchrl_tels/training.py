@@ -18,7 +18,6 @@ __all__ = [
     "FiniteWatch",
     "NonFiniteLossError",
     "TRAINING_STATE_FORMAT",
-    "check_finite",
     "check_finite_state",
     "get_rng_state",
     "is_user_error",
@@ -73,16 +72,6 @@ class FiniteWatch:
                     f"{self.stage}: {key} became {self.values[key].item()} at step {first.item()}; the run stops "
                     f"here and the last good checkpoint is kept unchanged."
                 )
-
-
-def check_finite(losses: TensorDictBase, stage: str, step: int) -> None:
-    """Raises :class:`NonFiniteLossError` naming the term and step if any ``loss_*`` is not finite."""
-    for key, value in losses.items():
-        if key.startswith("loss_") and not torch.isfinite(value).all():
-            raise NonFiniteLossError(
-                f"{stage}: {key} became {value.item()} at step {step}; the run stops here "
-                f"and the last good checkpoint is kept unchanged."
-            )
 
 
 def _tensors(obj: Any, prefix: str = ""):

@@ -36,7 +36,7 @@ def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] 
     make = (lambda: make_eval_env(env_id)) if wrap is None else (lambda: wrap(make_eval_env(env_id)))
     if copies == 1:
         return make()
-    make().close()  # an unknown id fails here, with make_eval_env's clear error, not inside a worker
+    eval_env_spaces(env_id)  # an unknown id fails here, with the clear error, not inside a worker
     return SerialEnv(copies, make)
 
 
