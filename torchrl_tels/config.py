@@ -85,8 +85,8 @@ def _check_term_weights(cfg) -> None:
 
 def resolve_threads(spec) -> int:
     """torch's intra-op thread count for ``threads``: ``auto`` (or ``None``) is half the logical CPUs, at
-    least 1. Beside another busy process, torch's default of every core ran stage 1 2.8x slower than
-    one thread on 2 cores (BENCHMARKS.md, "CPU threads"); half leaves a neighbour its share."""
+    least 1. Beside another busy process, torch's default of every core ran stage 1 several times slower
+    than one thread (BENCHMARKS.md, "CPU threads"); half leaves a neighbour its share."""
     if spec is None or spec == "auto":
         return max(1, (os.cpu_count() or 1) // 2)
     return int(spec)
