@@ -4,6 +4,7 @@
     python recipes/tels_offline.py budget=smoke         # about 20 seconds, the same configuration
     python recipes/tels_offline.py domain=paper budget=paper   # the paper as written
     python recipes/tels_offline.py run_dir=runs/x resume=true  # continue a killed run
+    python recipes/tels_offline.py 'seeds=[0,1,2]'        # three seeds in one process, stacked
 
 Stage 1 fits the TS-IDM (Eq. 7). Stage 2 encodes the dataset once with the
 frozen encoder and trains the latent value (Eq. 8) and the guide policy
@@ -14,12 +15,19 @@ it rebuilds the actor: ``torchrl_tels.modules.load_tels_actor``), ``monitor.pt``
 (the T-symmetry consistency monitor, calibrated on the training data),
 ``results.json`` and PNG plots. A bad config, dataset or checkpoint stops the run before
 ``run_dir`` is created.
+
+With ``seeds=[...]`` the seeds train in one process: each seed's networks are built and
+its batches drawn as in its own run, and every update is one ``torch.vmap`` over the
+seeds' stacked parameters (``torchrl_tels.seeds``). Each seed's outputs land in
+``run_dir/seed<k>/``; ``run_dir/results.json`` aggregates them.
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import sys
+from pathlib import Path
 
 # Idle OpenMP threads sleep instead of spinning, so a run sharing the machine with another
 # process does not collapse (BENCHMARKS.md, "CPU threads"). OpenMP reads this once, when
@@ -29,7 +37,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import hydra  # noqa: E402
 import torch  # noqa: E402
 import tqdm  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from omegaconf import DictConfig, open_dict, OmegaConf  # noqa: E402
 
 from torchrl_tels.config import (  # noqa: E402
     check_folder_creatable,
@@ -39,15 +47,18 @@ from torchrl_tels.config import (  # noqa: E402
 )
 from torchrl_tels.envs import make_eval_envs  # noqa: E402
 from torchrl_tels.errors import TelsError  # noqa: E402
-from torchrl_tels.modules import save_guide_policy  # noqa: E402
-from torchrl_tels.record import RunLogger, write_results  # noqa: E402
+from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
+from torchrl_tels.seeds import SeedRNG  # noqa: E402
+from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
     evaluate,
+    fit_tsidm_seeds,
     load_pretrained_tsidm,
     make_data,
     make_stage1,
     make_stage2,
     RunState,
+    StackedStage2,
     tsidm_steps,
 )
 
@@ -56,7 +67,7 @@ from torchrl_tels.trainer import (  # noqa: E402
 def main(cfg: DictConfig) -> dict:
     """A bad input, a bad checkpoint or a diverged loss ends the run with one ``error:`` line, exit code 2."""
     try:
-        return train(cfg)
+        return train(cfg) if cfg.seeds is None else train_seeds(cfg)
     except TelsError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
@@ -132,6 +143,128 @@ def train(cfg: DictConfig) -> dict:
     run.save(run_dir / "state.pt")
     logger.close()
     return results
+
+
+def seed_config(cfg: DictConfig, seed: int, run_dir: Path) -> DictConfig:
+    """The config of one seed of a ``seeds`` run: what its own single-seed run would get."""
+    seed_cfg = copy.deepcopy(cfg)
+    with open_dict(seed_cfg):
+        seed_cfg.seed, seed_cfg.seeds, seed_cfg.run_dir = seed, None, str(run_dir / f"seed{seed}")
+    return seed_cfg
+
+
+def train_seeds(cfg: DictConfig) -> dict:
+    """Algorithm 1 for every seed of ``cfg.seeds`` at once; each seed's outputs in ``run_dir/seed<k>``."""
+    validate_config(cfg)
+    check_precision_supported(cfg.precision)
+    torch.set_num_threads(resolve_threads(cfg.threads))
+    seeds = list(cfg.seeds)
+    run_dir = check_folder_creatable(cfg.run_dir)
+    run = RunState.start(cfg, run_dir / "state.pt")
+    if run.stage == "done" and (run_dir / "results.json").exists():
+        print(f"{run_dir} already finished; nothing to resume")
+        return json.loads((run_dir / "results.json").read_text())
+    configs = [seed_config(cfg, seed, run_dir) for seed in seeds]
+    datas, task = zip(*(make_data(c) for c in configs))
+    task = task[0]
+    pretrained = load_pretrained_tsidm(cfg, datas[0])
+    seed_runs = ([RunState.from_seed_record(r) for r in run.per_seed] if run.per_seed
+                 else [RunState(config={}) for _ in seeds])
+    if cfg.resume and (run_dir / "state.pt").exists():
+        print(f"resuming {run_dir} at {run.stage} step {run.step}")
+
+    for c in configs:
+        Path(c.run_dir).mkdir(parents=True, exist_ok=True)
+        (Path(c.run_dir) / "config.yaml").write_text(OmegaConf.to_yaml(c, resolve=True))
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
+                       config=OmegaConf.to_container(cfg, resolve=True), wandb_id=run.wandb_id)
+    run.wandb_id = logger.wandb_id
+
+    def save(**modules):
+        run.per_seed = [r.seed_record() for r in seed_runs]
+        run.save(run_dir / "state.pt", **modules)
+
+    # Algorithm 1, lines 1-4, for all seeds at once.
+    if pretrained is not None:
+        tsidms = [pretrained for _ in seeds]
+    elif run.stage != "tsidm":
+        tsidms = [TSIDM.load(Path(c.run_dir) / "tsidm.pt") for c in configs]
+    else:
+        with run.time("tsidm_s"):
+            trained = fit_tsidm_seeds(cfg, list(datas), seeds, run, run_dir, logger)
+        tsidms = []
+        for c, seed_run, (tsidm, final, history) in zip(configs, seed_runs, trained):
+            seed_run.beta_results, seed_run.tsidm_history = [{"beta": float(cfg.tsidm.beta), **final}], history
+            tsidm.metadata = {"beta": float(cfg.tsidm.beta), "dataset": str(cfg.dataset.name),
+                              "beta_results": seed_run.beta_results}
+            tsidm.save(Path(c.run_dir) / "tsidm.pt", metadata=tsidm.metadata)
+            tsidms.append(tsidm)
+        run.stage, run.step = "policy", 0
+        save()
+    for seed_run in seed_runs:  # the seeds trained together: each ran for the whole process's time
+        seed_run.wall["tsidm_s"] = run.wall.get("tsidm_s", 0.0)
+
+    # Line 6 and the stage-2 networks, per seed on its own RNG stream; the updates are stacked.
+    env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1)
+    rng = SeedRNG(len(seeds))
+    stages = []
+    for k, (c, data, tsidm) in enumerate(zip(configs, datas, tsidms)):
+        rng.start(k, c.seed)
+        with rng.use(k):
+            stages.append(make_stage2(c, data, tsidm, env.action_spec_unbatched))
+        stages[-1].monitor.save(Path(c.run_dir) / "monitor.pt")
+    stage2 = StackedStage2(stages, rng)
+    start = 0
+    if run.resumes("policy"):
+        run.restore(**stage2.modules())
+        start = run.step
+
+    with run.time("policy_s") as clock:
+        progress = tqdm.tqdm(range(start, cfg.policy.steps), desc=f"stage 2: value + guide, {len(seeds)} seeds",
+                             file=sys.stdout, initial=start, total=cfg.policy.steps, mininterval=2.0)
+        for step in progress:
+            value_losses, guide_losses = stage2.update(cfg, stage2.sample(), step)
+            if (step + 1) % cfg.logger.log_interval == 0:
+                stage2.check_finite()
+                for k, (seed, seed_run) in enumerate(zip(seeds, seed_runs)):
+                    scalars = {f"value/{key}": v[k].item() for key, v in value_losses.items()}
+                    scalars.update({f"guide/{key}": v[k].item() for key, v in guide_losses.items()})
+                    for key, value in scalars.items():
+                        seed_run.policy_history.setdefault(key, []).append((step + 1, value))
+                    logger.log_scalars({f"seed{seed}/{key}": v for key, v in scalars.items()}, step + 1)
+            if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
+                stage2.write_back()
+                with run.time("eval_s"):
+                    for k, (c, stage, seed_run) in enumerate(zip(configs, stages, seed_runs)):
+                        monitor = stage.monitor if step + 1 == cfg.policy.steps else None
+                        with rng.use(k):
+                            seed_run.evaluations.append(evaluate(c, stage.actor, env, task, step + 1,
+                                                                 stage.latent_stats, monitor=monitor))
+                        logger.log_scalars({f"seed{c.seed}/eval/score": seed_run.evaluations[-1]["score"]}, step + 1)
+                progress.set_postfix(score=f"{sum(r.evaluations[-1]['score'] for r in seed_runs) / len(seeds):.1f}")
+            if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
+                stage2.check_finite()
+                clock.update()
+                run.step = step + 1
+                save(**{name: m.state_dict() for name, m in stage2.modules().items()})
+
+    stage2.check_finite()
+    stage2.write_back()
+    results = []
+    for c, stage, seed_run, tsidm in zip(configs, stages, seed_runs, tsidms):
+        seed_run.wall.update({key: run.wall.get(key, 0.0) for key in ("policy_s", "eval_s")})
+        save_guide_policy(Path(c.run_dir) / "policy.pt", stage.guide, latent_dim=tsidm.latent_state_dim,
+                          mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
+                          metadata={"results": str(Path(c.run_dir) / "results.json")})
+        results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), stage.latent_stats,
+                                     Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(datas[0])),
+                                     policy_steps=cfg.policy.steps - start))
+    summary = write_seeds_summary(run_dir, seeds, results, run.wall)
+    run.stage, run.step = "done", cfg.policy.steps
+    save()
+    logger.close()
+    return summary
 
 
 if __name__ == "__main__":

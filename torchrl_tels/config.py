@@ -149,6 +149,7 @@ def validate_config(cfg) -> None:
         raise ConfigError(f"tsidm.inverse_dropout must lie in [0, 1), got {cfg.tsidm.inverse_dropout}.")
     if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or cfg.seed < 0:
         raise ConfigError(f"seed must be an integer >= 0, got {cfg.seed!r}.")
+    _check_seeds(cfg)
     cells = [f"tsidm.{name}_cells" for name in ("encoder", "decoder", "inverse", "action_decoder", "dynamics")]
     for path in cells + ["value.num_cells", "guide.num_cells"]:
         section, key = path.split(".")
@@ -211,6 +212,26 @@ def check_precision_supported(precision: str) -> None:
         )
 
 
+def _check_seeds(cfg) -> None:
+    seeds = cfg.get("seeds")
+    if seeds is None:
+        return
+    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__len__") or len(seeds) == 0 or not all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds
+    ):
+        raise ConfigError(f"seeds must be a non-empty list of integers >= 0 (or null), got {seeds!r}.")
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError(f"seeds must not repeat a seed, got {list(seeds)}.")
+    # Stacked seeds share the loss modules' plain attributes (torchrl_tels.seeds): options that
+    # give each seed its own value of one cannot be stacked.
+    if cfg.tsidm.beta == "auto":
+        raise ConfigError("seeds: tsidm.beta=auto picks beta per run; give tsidm.beta a number, or run the "
+                          "seeds one by one with seed=<k>.")
+    if cfg.guide.tsym_relative:
+        raise ConfigError("seeds: guide.tsym_relative=true scales each seed's guide by its own data step; run "
+                          "the seeds one by one with seed=<k>.")
+
+
 def training_config(cfg) -> dict:
     """The resolved config without :data:`RESUMABLE_KEYS`: what a run's checkpoints were made with.
 
@@ -219,7 +240,9 @@ def training_config(cfg) -> dict:
     from omegaconf import DictConfig, OmegaConf
 
     container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-    return {key: value for key, value in container.items() if key not in RESUMABLE_KEYS}
+    # ``seeds`` came later; a single-seed run (null) records it as absent, as its older checkpoints do.
+    return {key: value for key, value in container.items()
+            if key not in RESUMABLE_KEYS and not (key == "seeds" and value is None)}
 
 
 def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:

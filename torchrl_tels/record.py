@@ -8,7 +8,7 @@ from typing import Mapping
 
 from torchrl.record.loggers import CSVLogger
 
-__all__ = ["RunLogger"]
+__all__ = ["RunLogger", "write_results", "write_seeds_summary"]
 
 WANDB_MODES = ("online", "offline", "disabled")
 
@@ -167,3 +167,33 @@ def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm
     print(f"final score {results['final_normalized_score_mean']:.1f} ± {results['final_normalized_score_std']:.1f} "
           f"(mean of last {len(last)} evaluations; {results['score_kind']}); outputs in {run_dir}")
     return results
+
+
+def write_seeds_summary(run_dir, seeds, results: list, wall: Mapping) -> dict:
+    """``run_dir/results.json`` of a ``seeds`` run: each seed's final score, their mean and (population) std.
+
+    ``wall_time_s`` is the whole process's (all seeds trained together), and
+    ``seed_runs_per_hour`` the seeds it finished per hour of it.
+    """
+    import numpy as np
+
+    from torchrl_tels.training import write_json
+
+    scores = np.array([r["final_normalized_score_mean"] for r in results])
+    total = wall.get("tsidm_s", 0.0) + wall["policy_s"]
+    summary = {
+        "seeds": list(seeds),
+        "score_kind": results[0]["score_kind"],
+        "dataset": results[0]["dataset"],
+        "final_scores": {str(seed): float(score) for seed, score in zip(seeds, scores)},
+        "final_score_mean": float(scores.mean()),
+        "final_score_std": float(scores.std()),
+        "per_seed_results": [str(Path(run_dir) / f"seed{seed}" / "results.json") for seed in seeds],
+        "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall.get("eval_s", 0.0),
+                        "total": total},
+        "seed_runs_per_hour": len(seeds) * 3600.0 / total if total else None,
+    }
+    write_json(Path(run_dir) / "results.json", summary)
+    print(f"{len(seeds)} seeds: final score {summary['final_score_mean']:.1f} ± {summary['final_score_std']:.1f} "
+          f"over seeds; per seed in {run_dir}/seed<k>/")
+    return summary

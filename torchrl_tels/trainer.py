@@ -40,15 +40,18 @@ from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
 from torchrl_tels import training
+from torchrl_tels.seeds import SeedRNG, StackedLoss
 from torchrl_tels.training import check_finite_state, FiniteWatch, get_rng_state, set_rng_state, sum_losses
 
 __all__ = [
     "RunState",
     "Stage2",
+    "StackedStage2",
     "TSIDM_TERMS",
     "autocast",
     "evaluate",
     "fit_tsidm",
+    "fit_tsidm_seeds",
     "load_pretrained_tsidm",
     "make_data",
     "make_stage1",
@@ -56,6 +59,7 @@ __all__ = [
     "make_tsidm",
     "make_tsidm_loss",
     "resolve_task",
+    "sample_seeds",
     "tsidm_steps",
 ]
 
@@ -163,6 +167,7 @@ class RunState:
     evaluations: list = field(default_factory=list)
     modules: dict = field(default_factory=dict)
     rng: dict | None = None
+    per_seed: list = field(default_factory=list)  # with ``seeds``: each seed's record (:meth:`seed_record`)
 
     @classmethod
     def start(cls, cfg, path: Path) -> "RunState":
@@ -191,6 +196,16 @@ class RunState:
         for name, module in modules.items():
             module.load_state_dict(self.modules[name])
         set_rng_state(self.rng)
+
+    #: what a seed of a ``seeds`` run keeps of its own; the rest (stage, step, modules) is the run's
+    SEED_FIELDS = ("beta_results", "tsidm_history", "policy_history", "evaluations", "wall")
+
+    def seed_record(self) -> dict:
+        return {name: getattr(self, name) for name in self.SEED_FIELDS}
+
+    @classmethod
+    def from_seed_record(cls, record: dict) -> "RunState":
+        return cls(config={}, **{name: record[name] for name in cls.SEED_FIELDS})
 
     def time(self, key: str):
         """A context that adds the wall-clock time it spans to ``wall[key]``."""
@@ -294,6 +309,86 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     return tsidm.eval(), final, history
 
 
+def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: Path, logger=None):
+    """Stage 1 (Eq. 7) for several seeds at once, one ``(tsidm, final, history)`` per seed.
+
+    :func:`fit_tsidm`, with the seeds' TS-IDM losses stacked (:class:`~torchrl_tels.seeds.StackedLoss`):
+    each seed is initialised and draws its batches from its own RNG stream, as its single-seed run does.
+    ``run`` checkpoints the stacked state and the streams; resuming continues all seeds.
+    """
+    t = cfg.tsidm
+    beta = float(t.beta)
+    device = resolve_device(cfg.device)
+    totals = {tsidm_steps(cfg, len(data)) for data in datas}
+    if len(totals) > 1:
+        raise DatasetError(f"seeds {seeds}: their data subsets give stage 1 different lengths {sorted(totals)}; "
+                           f"set tsidm.steps to train every seed as long.")
+    total = totals.pop()
+    rng = SeedRNG(len(seeds))
+    tsidms, losses, buffers = [], [], []
+    for k, (seed, data) in enumerate(zip(seeds, datas)):
+        rng.start(k, seed)  # a single-seed run seeds stage 1 with seed + candidate, candidate 0
+        with rng.use(k):
+            tsidms.append(make_tsidm(cfg, data).to(device))
+            losses.append(make_tsidm_loss(cfg, tsidms[-1], beta))
+            buffers.append(make_offline_replay_buffer(data, t.batch_size, device=device))
+    stack = StackedLoss(losses)
+    optim = torch.optim.Adam(stack.trainable(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
+    watch = FiniteWatch(f"stage 1 (TS-IDM, beta={beta:g}, seeds {seeds})")
+    start, tail, histories = 0, [], [{key: [] for key in TSIDM_TERMS} for _ in seeds]
+    if run.resumes("tsidm"):
+        run.restore(loss=stack, optim=optim, seed_rng=rng)
+        start, histories, tail = run.step, run.modules["histories"], run.modules["tail"]
+
+    progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}, {len(seeds)} seeds",
+                         file=sys.stdout, initial=start, total=total, mininterval=2.0)
+    for step in progress:
+        batch = sample_seeds(buffers, rng)
+        with autocast(cfg):
+            out = stack(batch)
+        watch.update(out, step)
+        optim.zero_grad()
+        sum_losses(out).sum().backward()  # the seeds share no parameter: each gets its own gradient
+        optim.step()
+        if step >= int(0.9 * total):
+            tail.append(torch.stack([out["ell_total"], out["ell_sum"]], -1))
+        if (step + 1) % cfg.logger.log_interval == 0:
+            watch.check()
+            for k, seed in enumerate(seeds):
+                scalars = {key: out[key][k].item() for key in TSIDM_TERMS if key in out.keys()}
+                for key, value in scalars.items():
+                    histories[k][key].append((step + 1, value))
+                if logger is not None:
+                    logger.log_scalars({f"seed{seed}/tsidm/{key}": v for key, v in scalars.items()}, step + 1)
+            progress.set_postfix(loss=f"{out['ell_total'].mean().item():.4f}")
+        if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
+            watch.check()
+            run.step = step + 1
+            run.save(run_dir / "state.pt", loss=stack.state_dict(), optim=optim.state_dict(),
+                     seed_rng=rng.state_dict(), histories=histories, tail=[pair.tolist() for pair in tail])
+    watch.check()
+    stack.write_back()
+    tail = torch.tensor([pair.tolist() if torch.is_tensor(pair) else pair for pair in tail])  # [steps, seeds, 2]
+    results = []
+    for k, (seed, data) in enumerate(zip(seeds, datas)):
+        check_finite_state(losses[k].state_dict(), f"stage 1 (TS-IDM, seed {seed}) after step {total}")
+        tsidm = tsidms[k].cpu()
+        if tsidm.latent_standardization:
+            tsidm.fit_latent_standardization(data["observation"])
+        final = {"final_loss": tail[:, k, 0].mean().item(), "final_sum": tail[:, k, 1].mean().item()}
+        results.append((tsidm.eval(), final, histories[k]))
+    return results
+
+
+def sample_seeds(buffers: list, rng: SeedRNG) -> TensorDictBase:
+    """One batch per seed, each drawn from its own buffer on its own RNG stream, stacked ``[seeds, batch]``."""
+    batches = []
+    for k, buffer in enumerate(buffers):
+        with rng.use(k):
+            batches.append(buffer.sample())
+    return torch.stack(batches)
+
+
 def load_pretrained_tsidm(cfg, data) -> TSIDM | None:
     """The TS-IDM of ``tsidm.checkpoint`` (checked against the data's sizes), or ``None``."""
     if not cfg.tsidm.checkpoint:
@@ -392,6 +487,68 @@ class Stage2:
     def modules(self) -> dict:
         return {"value_loss": self.value_loss, "guide_loss": self.guide_loss,
                 "value_optim": self.value_optim, "guide_optim": self.guide_optim}
+
+
+@dataclass
+class StackedStage2:
+    """:class:`Stage2` for several seeds, one per entry of ``stages``, updated as one stacked step.
+
+    The guide's copy of V is a view of the stacked V, so it reads the updated V, as in
+    :meth:`Stage2.update`; the target V follows by the same ``lerp_`` as torchrl's ``SoftUpdate``.
+    Call :meth:`write_back` before using a seed's own actor, guide or V.
+    """
+
+    stages: list[Stage2]
+    rng: SeedRNG
+    value: StackedLoss = None
+    guide: StackedLoss = None
+    value_optim: torch.optim.Optimizer = None
+    guide_optim: torch.optim.Optimizer = None
+
+    def __post_init__(self):
+        cfg_value_lr = self.stages[0].value_optim.param_groups[0]["lr"]
+        cfg_guide_lr = self.stages[0].guide_optim.param_groups[0]["lr"]
+        self.value = StackedLoss([stage.value_loss for stage in self.stages])
+        self.guide = StackedLoss([stage.guide_loss for stage in self.stages])
+        self.guide.share("value_network_params", self.value)
+        self.value_optim = torch.optim.Adam(self.value.trainable("value_network_params"), lr=cfg_value_lr, fused=True)
+        self.guide_optim = torch.optim.Adam(self.guide.trainable(), lr=cfg_guide_lr, fused=True)
+        self.target_weight = 1 - self.stages[0].target_updater.eps
+        self.value_watch = FiniteWatch("stage 2 (value)")
+        self.guide_watch = FiniteWatch("stage 2 (guide)")
+
+    def sample(self) -> TensorDictBase:
+        return sample_seeds([stage.buffer for stage in self.stages], self.rng)
+
+    def update(self, cfg, batch: TensorDictBase, step: int):
+        """:meth:`Stage2.update` for every seed at once; the losses carry a leading seed dimension."""
+        with autocast(cfg):
+            value_losses = self.value(batch)
+        self.value_watch.update(value_losses, step)
+        self.value_optim.zero_grad()
+        value_losses["loss_value"].sum().backward()
+        self.value_optim.step()
+        with autocast(cfg):
+            guide_losses = self.guide(batch)
+        self.guide_watch.update(guide_losses, step)
+        self.guide_optim.zero_grad()
+        sum_losses(guide_losses).sum().backward()
+        self.guide_optim.step()
+        params = self.value.params
+        params["target_value_network_params"].data.lerp_(params["value_network_params"].data, self.target_weight)
+        return value_losses, guide_losses
+
+    def check_finite(self) -> None:
+        self.value_watch.check()
+        self.guide_watch.check()
+
+    def write_back(self) -> None:
+        self.value.write_back()
+        self.guide.write_back()
+
+    def modules(self) -> dict:
+        return {"value_loss": self.value, "guide_loss": self.guide, "value_optim": self.value_optim,
+                "guide_optim": self.guide_optim, "seed_rng": self.rng}
 
 
 def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:

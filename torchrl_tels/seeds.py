@@ -1,0 +1,152 @@
+"""Several seeds of one loss module, trained in one process as one batched update.
+
+Each seed keeps its own loss module (its own initialisation, buffers and
+attributes); :class:`StackedLoss` stacks their parameters and buffers along a
+new leading dimension and evaluates the first module with each seed's slice
+under :func:`torch.vmap`. One backward pass then gives every seed exactly the
+gradient its own run would get (the seeds share no parameter, so the sum over
+seeds separates), and one elementwise optimizer over the stacked leaves is the
+seeds' own optimizers side by side.
+
+:class:`SeedRNG` keeps one stream of the global RNGs per seed, so that what a
+seed draws outside the vmapped call (its replay-buffer indices, its
+initialisation) is what it draws in a single-seed run.
+
+What differs from single-seed runs: random draws *inside* the vmapped call
+(dropout) come from one shared stream, so with dropout the seeds match their
+single-seed runs in distribution, not draw for draw; plain Python attributes
+of the loss (a float option) are the first module's for every seed; and a
+loss's data-dependent input checks (``check_inputs``) are off under vmap.
+"""
+from __future__ import annotations
+
+import contextlib
+from typing import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from torchrl_tels.training import get_rng_state, set_rng_state
+
+__all__ = ["SeedRNG", "StackedLoss"]
+
+
+class StackedLoss:
+    """The parameters of ``losses`` (one module per seed, same structure) stacked, and one vmapped forward.
+
+    Args:
+        losses: one loss module per seed. The first one is the template the
+            stacked parameters are swapped into; each module keeps its own
+            parameters untouched until :meth:`write_back`.
+
+    ``params`` holds every parameter and buffer of the modules with a leading
+    seed dimension; a leaf needs a gradient exactly where the first module's
+    does. Calling the object with a batch of shape ``[n_seeds, batch]`` returns
+    the loss tensordict with a leading seed dimension.
+    """
+
+    def __init__(self, losses: Sequence[torch.nn.Module]):
+        if not losses:
+            raise ValueError("StackedLoss needs at least one loss module.")
+        self.losses = list(losses)
+        self.template = self.losses[0]
+        layouts = [TensorDict.from_module(loss) for loss in self.losses]
+        keys = set(layouts[0].keys(True, True))
+        for k, layout in enumerate(layouts[1:], 1):
+            if set(layout.keys(True, True)) != keys:
+                raise ValueError(f"StackedLoss: the module of seed index {k} has other parameters than the first.")
+        self.params = torch.stack([layout.detach() for layout in layouts]).clone()
+        for key, leaf in layouts[0].items(True, True):
+            if leaf.requires_grad:
+                self.params.get(key).requires_grad_()
+        self._call = torch.vmap(self._forward, (0, 0), randomness="different")
+
+    def __len__(self) -> int:
+        return len(self.losses)
+
+    def _forward(self, params: TensorDictBase, batch: TensorDictBase) -> TensorDictBase:
+        with params.to_module(self.template):
+            return self.template(batch)
+
+    def __call__(self, batches: TensorDictBase) -> TensorDictBase:
+        if batches.batch_size[:1] != torch.Size([len(self)]):
+            raise ValueError(f"StackedLoss: expected batches with leading size {len(self)} (one per seed), "
+                             f"got batch size {tuple(batches.batch_size)}.")
+        # A loss's own input checks (``check_inputs``) branch on the data, which vmap cannot do.
+        checks = getattr(self.template, "check_inputs", None)
+        if checks:
+            self.template.check_inputs = False
+        try:
+            return self._call(self.params, batches)
+        finally:
+            if checks:
+                self.template.check_inputs = checks
+
+    def trainable(self, prefix: str | None = None) -> list[torch.Tensor]:
+        """The stacked leaves that need a gradient (under ``prefix`` only, if given)."""
+        source = self.params if prefix is None else self.params.get(prefix)
+        return [leaf for leaf in source.values(True, True) if leaf.requires_grad]
+
+    def share(self, key: str, source: "StackedLoss", source_key: str | None = None) -> None:
+        """Makes ``params[key]`` a gradient-free view of ``source.params[source_key]``.
+
+        Where a loss reads another loss's live weights (the guide reads V), the
+        stacked copies must stay views too, or the reader would see stale weights.
+        """
+        self.params.set(key, source.params.get(source_key or key).detach())
+
+    def write_back(self) -> None:
+        """Copies each seed's slice into its own module (before evaluating or saving it)."""
+        with torch.no_grad():
+            for k, loss in enumerate(self.losses):
+                TensorDict.from_module(loss).data.update_(self.params[k].data)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {".".join(key): leaf.detach() for key, leaf in self.params.items(True, True)}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        with torch.no_grad():
+            for key, leaf in self.params.items(True, True):
+                name = ".".join(key)
+                if name not in state or state[name].shape != leaf.shape:
+                    raise KeyError(f"StackedLoss: the saved state has no tensor {name!r} of shape "
+                                   f"{tuple(leaf.shape)}.")
+                leaf.copy_(state[name])
+
+
+class SeedRNG:
+    """One stream of the global RNGs (torch, CUDA, numpy, python) per seed.
+
+    ``with rng.use(k):`` runs its body on seed ``k``'s stream and leaves the
+    outer stream as it was. A stream starts from ``torch.manual_seed(seed)``
+    (:meth:`start`), or from a saved :meth:`state_dict`.
+    """
+
+    def __init__(self, n_seeds: int):
+        self.states: list[dict | None] = [None] * n_seeds
+
+    def start(self, k: int, seed: int) -> None:
+        outer = get_rng_state()
+        torch.manual_seed(seed)
+        self.states[k] = get_rng_state()
+        set_rng_state(outer)
+
+    @contextlib.contextmanager
+    def use(self, k: int):
+        if self.states[k] is None:
+            raise RuntimeError(f"SeedRNG: stream {k} was never started.")
+        outer = get_rng_state()
+        set_rng_state(self.states[k])
+        try:
+            yield
+        finally:
+            self.states[k] = get_rng_state()
+            set_rng_state(outer)
+
+    def state_dict(self) -> list:
+        return list(self.states)
+
+    def load_state_dict(self, states: list) -> None:
+        if len(states) != len(self.states):
+            raise ValueError(f"SeedRNG: {len(states)} saved streams for {len(self.states)} seeds.")
+        self.states = list(states)
