@@ -5,12 +5,12 @@
 #      CUDA but not torchrl, tensordict, gymnasium, mujoco, hydra or minari); make them here with
 #        bash benchmarks/gpu_check.sh --download
 #   2. runs the tests that use CUDA (tests/test_device.py; they skip on a machine without one);
-#   3. times the paper-budget run of one seed (domain=paper budget=paper device=cuda) and prints
-#      a table with the stage speeds the run wrote to results.json.
+#   3. times the study budget (3k TS-IDM + 5k policy steps) for one seed and for five seeds in one
+#      process (seeds=[0,1,2,3,4], stacked), then the paper-budget run of one seed
+#      (domain=paper budget=paper device=cuda), and prints a table from the runs' results.json.
 #
 # Device call (from the repository root; $OUT comes back):
-#   bash benchmarks/gpu_check.sh            with carry: [".whl"] and timeout_s 540
-# Several seeds in one process are not implemented yet, so their row stays "not measured".
+#   bash benchmarks/gpu_check.sh            with carry: [".whl"] and timeout_s 580
 # Not yet run on a GPU machine: no session so far was lent one.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -39,24 +39,37 @@ python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.i
 echo "== tests that use CUDA"
 timeout 150 python3 -m pytest -q tests/test_device.py 2>&1 | tee "$OUT/tests.txt" | tail -5
 
+timed() {  # timed NAME TIMEOUT recipe-overrides...: runs the recipe, records its wall seconds and exit code
+  local name=$1 limit=$2; shift 2
+  local start=$(date +%s)
+  timeout "$limit" python3 recipes/tels_offline.py device=cuda logger.wandb_mode=disabled run_dir="$OUT/$name" "$@" \
+    > "$OUT/$name.log" 2>&1
+  echo "$name $? $(( $(date +%s) - start ))" >> "$OUT/walls.txt"
+}
+echo "== study budget: one seed, then five seeds in one process"
+timed study_seed0 100 seed=0
+timed study_seeds5 160 'seeds=[0,1,2,3,4]'
 echo "== paper budget, one seed"
-start=$(date +%s)
-timeout 300 python3 recipes/tels_offline.py domain=paper budget=paper device=cuda seed=0 \
-  run_dir="$OUT/paper_seed0" logger.wandb_mode=disabled > "$OUT/paper_seed0.log" 2>&1
-rc=$?
-end=$(date +%s)
-python3 - "$OUT/paper_seed0/results.json" "$((end - start))" "$rc" <<'PY' | tee "$OUT/table.md"
-import json, sys
-path, wall, rc = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-print("| measurement | value |\n|---|---|")
-try:
-    r = json.load(open(path))
-    print(f"| paper budget, 1 seed, wall time | {wall} s |")
-    print(f"| stage 1 steps/s | {r['steps_per_s']['tsidm']:.1f} |")
-    print(f"| stage 2 steps/s (without evaluation) | {r['steps_per_s']['policy_excluding_eval']:.1f} |")
-    print(f"| evaluation, total | {r['wall_time_s']['eval']:.1f} s |")
-    print(f"| final score | {r['final_normalized_score_mean']:.1f} |")
-except (OSError, KeyError, ValueError) as err:
-    print(f"| paper budget, 1 seed | did not finish (exit {rc}, {wall} s): {type(err).__name__} |")
-print("| paper budget, 5 seeds in one process | not measured (not implemented) |")
+timed paper_seed0 230 domain=paper budget=paper seed=0
+
+python3 - "$OUT" <<'PY' | tee "$OUT/table.md"
+import json, pathlib, sys
+out = pathlib.Path(sys.argv[1])
+walls = {name: (int(rc), int(s)) for name, rc, s in (line.split() for line in (out / "walls.txt").read_text().splitlines())}
+print("| run | exit | wall s (process) | stage 1 steps/s | stage 2 steps/s (no eval) | eval s | final score |")
+print("|---|---|---|---|---|---|---|")
+for name, label in (("study_seed0", "study budget, 1 seed"), ("study_seeds5", "study budget, 5 seeds in one process"),
+                    ("paper_seed0", "paper budget, 1 seed")):
+    rc, wall = walls.get(name, (None, None))
+    try:
+        r = json.loads((out / name / "results.json").read_text())
+    except (OSError, ValueError):
+        print(f"| {label} | {rc} | {wall} | did not finish | | | |")
+        continue
+    if "seeds" in r:  # the aggregate of a seeds run; the stage speeds are in each seed's results.json
+        one = json.loads((out / name / "seed0" / "results.json").read_text())
+        r = {**one, "final_normalized_score_mean": r["final_score_mean"]}
+    s = r["steps_per_s"]
+    print(f"| {label} | {rc} | {wall} | {s['tsidm']:.1f} | {s['policy_excluding_eval']:.1f} | "
+          f"{r['wall_time_s']['eval']:.1f} | {r['final_normalized_score_mean']:.1f} |")
 PY
