@@ -76,7 +76,7 @@ def main(cfg: DictConfig) -> dict:
 def train(cfg: DictConfig) -> dict:
     # Everything that can refuse the run is checked before run_dir is created.
     validate_config(cfg)
-    check_precision_supported(cfg.precision)
+    check_precision_supported(cfg.precision, cfg.device)
     torch.set_num_threads(resolve_threads(cfg.threads))
     torch.manual_seed(cfg.seed)
     run_dir = check_folder_creatable(cfg.run_dir)
@@ -156,7 +156,7 @@ def seed_config(cfg: DictConfig, seed: int, run_dir: Path) -> DictConfig:
 def train_seeds(cfg: DictConfig) -> dict:
     """Algorithm 1 for every seed of ``cfg.seeds`` at once; each seed's outputs in ``run_dir/seed<k>``."""
     validate_config(cfg)
-    check_precision_supported(cfg.precision)
+    check_precision_supported(cfg.precision, cfg.device)
     torch.set_num_threads(resolve_threads(cfg.threads))
     seeds = list(cfg.seeds)
     run_dir = check_folder_creatable(cfg.run_dir)

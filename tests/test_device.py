@@ -86,3 +86,34 @@ def test_recipe_runs_on_cuda_and_its_files_load_on_the_cpu(tmp_path):
     assert len(results["evaluations"]) == 2
     tsidm = TSIDM.load(run_dir / "tsidm.pt", observation_dim=11, action_dim=3)
     assert next(tsidm.parameters()).device == torch.device("cpu")
+
+
+def test_bf16_autocast_follows_the_run_device():
+    """precision=bf16 autocasts on the device the run computes on, not always on the CPU."""
+    from omegaconf import OmegaConf
+
+    from torchrl_tels.trainer import autocast
+
+    cfg = OmegaConf.create({"device": "cpu", "precision": "bf16"})
+    assert autocast(cfg).device == "cpu" and autocast(cfg)._enabled
+    assert not autocast(OmegaConf.create({"device": "cpu", "precision": "fp32"}))._enabled
+    if torch.cuda.is_available():
+        assert autocast(OmegaConf.create({"device": "cuda", "precision": "bf16"})).device == "cuda"
+
+
+@cuda
+def test_stacked_seeds_on_cuda_match_cpu():
+    """Several seeds in one process on the GPU: the stacked Eq. (7) equals the CPU's."""
+    from torchrl_tels.seeds import StackedLoss
+
+    losses = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        losses.append(TSIDMLoss(TSIDM(6, 2, encoder_cells=[32], decoder_cells=[32], inverse_cells=[32],
+                                      action_decoder_cells=[32], dynamics_cells=[32], inverse_dropout=0.0)))
+    batch = TensorDict({"observation": torch.randn(2, 64, 6), "action": torch.rand(2, 64, 2) * 2 - 1,
+                        "next": {"observation": torch.randn(2, 64, 6)}}, [2, 64])
+    on_cpu = StackedLoss(losses)(batch)
+    on_gpu = StackedLoss([copy.deepcopy(loss).cuda() for loss in losses])(batch.cuda())
+    for key in ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym"):
+        torch.testing.assert_close(on_gpu[key].cpu(), on_cpu[key], rtol=1e-4, atol=1e-5)

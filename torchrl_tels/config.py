@@ -196,15 +196,23 @@ def native_bf16_supported() -> bool:
     return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
-def check_precision_supported(precision: str) -> None:
-    """Raises :class:`ConfigError` for ``precision=bf16`` on a CPU without native bf16.
+def check_precision_supported(precision: str, device: str = "cpu") -> None:
+    """Raises :class:`ConfigError` for ``precision=bf16`` where the device has no native bf16.
 
-    Without it, autocast emulates bf16 and a TELS step runs tens of times
-    slower than fp32 (BENCHMARKS.md), so the request is refused, not obeyed.
+    On a CPU without it, autocast emulates bf16 and a TELS step runs tens of
+    times slower than fp32 (BENCHMARKS.md), so the request is refused, not obeyed;
+    on CUDA, bf16 needs a GPU that supports it (``torch.cuda.is_bf16_supported``).
     """
-    if precision == "bf16" and not native_bf16_supported():
-        import torch
+    if precision != "bf16":
+        return
+    import torch
 
+    if resolve_device(device).type == "cuda":
+        if not torch.cuda.is_bf16_supported():
+            raise ConfigError(f"precision=bf16 but the GPU of device={device} does not support bf16. "
+                              f"Use precision=fp32.")
+        return
+    if not native_bf16_supported():
         raise ConfigError(
             f"precision=bf16 needs a CPU with native bf16 matrix multiplication (AVX512-BF16 or AMX); "
             f"this one offers {torch.backends.cpu.get_cpu_capability()}, where bf16 autocast is emulated and "

@@ -72,8 +72,8 @@ MONITOR_QUANTILE = 0.99
 
 
 def autocast(cfg):
-    """bf16 matmuls on CPU when ``precision=bf16``; fp32 otherwise."""
-    return torch.autocast("cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+    """bf16 matmuls on the run's device (CPU or CUDA) when ``precision=bf16``; fp32 otherwise."""
+    return torch.autocast(resolve_device(cfg.device).type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
 
 
 def tsidm_steps(cfg, n_transitions: int) -> int:
