@@ -51,6 +51,7 @@ from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
 from torchrl_tels.seeds import SeedRNG  # noqa: E402
 from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
+    check_same_stage1_length,
     evaluate,
     fit_tsidm_seeds,
     load_pretrained_tsidm,
@@ -58,6 +59,7 @@ from torchrl_tels.trainer import (  # noqa: E402
     make_stage1,
     make_stage2,
     RunState,
+    skip_stage1,
     StackedStage2,
     tsidm_steps,
 )
@@ -167,7 +169,11 @@ def train_seeds(cfg: DictConfig) -> dict:
     configs = [seed_config(cfg, seed, run_dir) for seed in seeds]
     datas, task = zip(*(make_data(c) for c in configs))
     task = task[0]
+    if not cfg.tsidm.checkpoint:
+        check_same_stage1_length(cfg, datas, seeds)
     pretrained = load_pretrained_tsidm(cfg, datas[0])
+    # Draws inside the stacked update (dropout) come from the global stream; seed it as a single run does.
+    torch.manual_seed(cfg.seed)
     seed_runs = ([RunState.from_seed_record(r) for r in run.per_seed] if run.per_seed
                  else [RunState(config={}) for _ in seeds])
     if cfg.resume and (run_dir / "state.pt").exists():
@@ -187,9 +193,11 @@ def train_seeds(cfg: DictConfig) -> dict:
 
     # Algorithm 1, lines 1-4, for all seeds at once.
     if pretrained is not None:
+        skip_stage1(run)
         tsidms = [pretrained for _ in seeds]
     elif run.stage != "tsidm":
-        tsidms = [TSIDM.load(Path(c.run_dir) / "tsidm.pt") for c in configs]
+        tsidms = [TSIDM.load(Path(c.run_dir) / "tsidm.pt", observation_dim=data["observation"].shape[-1],
+                             action_dim=data["action"].shape[-1]) for c, data in zip(configs, datas)]
     else:
         with run.time("tsidm_s"):
             trained = fit_tsidm_seeds(cfg, list(datas), seeds, run, run_dir, logger)
@@ -214,7 +222,8 @@ def train_seeds(cfg: DictConfig) -> dict:
         with rng.use(k):
             stages.append(make_stage2(c, data, tsidm, env.action_spec_unbatched))
         stages[-1].monitor.save(Path(c.run_dir) / "monitor.pt")
-    stage2 = StackedStage2(stages, rng)
+    stage2 = StackedStage2(stages, rng, labels=[f"seed {seed}" for seed in seeds])
+    torch.manual_seed(cfg.seed + 1000)  # the global stream of stage 2, the same whether or not stage 1 ran here
     start = 0
     if run.resumes("policy"):
         run.restore(**stage2.modules())
@@ -252,13 +261,13 @@ def train_seeds(cfg: DictConfig) -> dict:
     stage2.check_finite()
     stage2.write_back()
     results = []
-    for c, stage, seed_run, tsidm in zip(configs, stages, seed_runs, tsidms):
+    for c, data, stage, seed_run, tsidm in zip(configs, datas, stages, seed_runs, tsidms):
         seed_run.wall.update({key: run.wall.get(key, 0.0) for key in ("policy_s", "eval_s")})
         save_guide_policy(Path(c.run_dir) / "policy.pt", stage.guide, latent_dim=tsidm.latent_state_dim,
                           mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
                           metadata={"results": str(Path(c.run_dir) / "results.json")})
         results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), stage.latent_stats,
-                                     Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(datas[0])),
+                                     Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(data)),
                                      policy_steps=cfg.policy.steps - start))
     summary = write_seeds_summary(run_dir, seeds, results, run.wall)
     run.stage, run.step = "done", cfg.policy.steps

@@ -262,6 +262,19 @@ def test_sigkill_at_exact_checkpoints_then_resume(reference, tmp_path, driver):
     assert (run_dir / "results.json").read_bytes() == before
 
 
+def test_sigkill_in_stage2_of_a_pretrained_tsidm_run_then_resume(reference, tmp_path, driver):
+    """A run that starts from ``tsidm.checkpoint`` checkpoints as stage 2, so a kill there resumes in
+    stage 2 at its step, and equals the uninterrupted run from the same checkpoint."""
+    pretrained = [f"tsidm.checkpoint={reference / 'tsidm.pt'}"]
+    run(tmp_path / "whole", *pretrained)
+    killed = run(tmp_path / "run", *pretrained, driver=(driver, "kill_after_checkpoint", "policy,0,96"), check=False)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    proc = run(tmp_path / "run", *pretrained, "resume=true")
+    assert f"resuming {tmp_path / 'run'} at policy step 96" in proc.stdout
+    assert outcome(tmp_path / "run") == outcome(tmp_path / "whole")
+    assert csv_log(tmp_path / "run") == csv_log(tmp_path / "whole")
+
+
 def test_nan_loss_stops_run_and_keeps_last_good_checkpoint(tmp_path, driver):
     run_dir = tmp_path / "run"
     proc = run(run_dir, base=FAST, driver=(driver, "nan_loss", "60"), check=False)

@@ -178,6 +178,7 @@ def test_killed_two_seed_run_resumes_bitwise(two_seeds, tmp_path):
     (["seeds=[0,-1]"], "integers >= 0"),
     (["seeds=[0,1]", "tsidm.beta=auto"], "tsidm.beta=auto"),
     (["seeds=[0,1]", "guide.tsym_relative=true"], "tsym_relative"),
+    (["seeds=[0,1]", "domain=maze"], "guide.mode=stochastic"),
 ])
 def test_bad_seeds_are_refused(overrides, message):
     from hydra import compose, initialize_config_dir
@@ -197,3 +198,26 @@ def test_bad_seeds_stop_the_recipe_before_run_dir(tmp_path):
     assert proc.returncode == 2
     assert "must not repeat" in proc.stderr and proc.stderr.count("error:") == 1, proc.stderr[-1000:]
     assert not (tmp_path / "run").exists()
+
+
+def test_finite_watch_names_the_seed_that_diverged():
+    from torchrl_tels.training import FiniteWatch, NonFiniteLossError
+
+    watch = FiniteWatch("stage 2 (value)", entries=["seed 3", "seed 7"])
+    watch.update(TensorDict({"loss_value": torch.tensor([1.0, 2.0])}, []), 0)
+    watch.update(TensorDict({"loss_value": torch.tensor([1.0, float("nan")])}, []), 1)
+    watch.update(TensorDict({"loss_value": torch.tensor([float("inf"), float("nan")])}, []), 2)
+    with pytest.raises(NonFiniteLossError, match=r"loss_value \(seed 7\) became nan at step 1"):
+        watch.check()
+
+
+def test_seeds_whose_subsets_differ_in_stage1_length_are_refused():
+    from omegaconf import OmegaConf
+
+    from torchrl_tels.errors import DatasetError
+    from torchrl_tels.trainer import check_same_stage1_length
+
+    cfg = OmegaConf.create({"tsidm": {"steps": None, "epochs": 2, "batch_size": 100}})
+    assert check_same_stage1_length(cfg, [range(1000), range(950)], [0, 1]) == 20
+    with pytest.raises(DatasetError, match=r"different lengths \[20, 22\]; set tsidm.steps"):
+        check_same_stage1_length(cfg, [range(1000), range(1050)], [0, 1])

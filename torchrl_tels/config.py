@@ -235,6 +235,9 @@ def _check_seeds(cfg) -> None:
     if cfg.tsidm.beta == "auto":
         raise ConfigError("seeds: tsidm.beta=auto picks beta per run; give tsidm.beta a number, or run the "
                           "seeds one by one with seed=<k>.")
+    if cfg.guide.mode == "stochastic" and cfg.guide.tsym_regularizer:
+        raise ConfigError("seeds: guide.mode=stochastic samples its T-symmetry proposal in place, which the "
+                          "stacked (vmapped) update cannot do; run the seeds one by one with seed=<k>.")
     if cfg.guide.tsym_relative:
         raise ConfigError("seeds: guide.tsym_relative=true scales each seed's guide by its own data step; run "
                           "the seeds one by one with seed=<k>.")

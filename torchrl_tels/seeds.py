@@ -8,13 +8,15 @@ gradient its own run would get (the seeds share no parameter, so the sum over
 seeds separates), and one elementwise optimizer over the stacked leaves is the
 seeds' own optimizers side by side.
 
-:class:`SeedRNG` keeps one stream of the global RNGs per seed, so that what a
+:class:`SeedRNG` keeps one stream of torch's global RNG per seed, so that what a
 seed draws outside the vmapped call (its replay-buffer indices, its
 initialisation) is what it draws in a single-seed run.
 
 What differs from single-seed runs: random draws *inside* the vmapped call
-(dropout) come from one shared stream, so with dropout the seeds match their
-single-seed runs in distribution, not draw for draw; plain Python attributes
+(dropout) come from the shared global stream, so with dropout a seed matches
+its single-seed run in distribution, not draw for draw (its batches too, since a
+single-seed run draws dropout masks and batch indices from one stream); in-place
+sampling (``Distribution.rsample``) cannot run under vmap at all; plain Python attributes
 of the loss (a float option) are the first module's for every seed; and a
 loss's data-dependent input checks (``check_inputs``) are off under vmap.
 """
@@ -26,7 +28,7 @@ from typing import Sequence
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_tels.training import get_rng_state, set_rng_state
+from torchrl_tels.errors import CheckpointError
 
 __all__ = ["SeedRNG", "StackedLoss"]
 
@@ -109,44 +111,59 @@ class StackedLoss:
             for key, leaf in self.params.items(True, True):
                 name = ".".join(key)
                 if name not in state or state[name].shape != leaf.shape:
-                    raise KeyError(f"StackedLoss: the saved state has no tensor {name!r} of shape "
-                                   f"{tuple(leaf.shape)}.")
+                    raise CheckpointError(f"the saved stacked state has no tensor {name!r} of shape "
+                                          f"{tuple(leaf.shape)}: it was written for other seeds or networks.")
                 leaf.copy_(state[name])
 
 
 class SeedRNG:
-    """One stream of the global RNGs (torch, CUDA, numpy, python) per seed.
+    """One stream of torch's global RNG (and CUDA's, where there is one) per seed.
 
     ``with rng.use(k):`` runs its body on seed ``k``'s stream and leaves the
     outer stream as it was. A stream starts from ``torch.manual_seed(seed)``
-    (:meth:`start`), or from a saved :meth:`state_dict`.
+    (:meth:`start`), or from a saved :meth:`state_dict`. numpy's and Python's
+    generators are not swapped: nothing a seed draws per step uses them.
     """
 
     def __init__(self, n_seeds: int):
         self.states: list[dict | None] = [None] * n_seeds
 
+    @staticmethod
+    def _get() -> dict:
+        state = {"torch": torch.get_rng_state()}
+        if torch.cuda.is_available():
+            state["cuda"] = torch.cuda.get_rng_state_all()
+        return state
+
+    @staticmethod
+    def _set(state: dict) -> None:
+        torch.set_rng_state(state["torch"])
+        if "cuda" in state and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda"])
+
     def start(self, k: int, seed: int) -> None:
-        outer = get_rng_state()
+        outer = self._get()
         torch.manual_seed(seed)
-        self.states[k] = get_rng_state()
-        set_rng_state(outer)
+        self.states[k] = self._get()
+        self._set(outer)
 
     @contextlib.contextmanager
     def use(self, k: int):
         if self.states[k] is None:
             raise RuntimeError(f"SeedRNG: stream {k} was never started.")
-        outer = get_rng_state()
-        set_rng_state(self.states[k])
+        outer = self._get()
+        self._set(self.states[k])
         try:
             yield
         finally:
-            self.states[k] = get_rng_state()
-            set_rng_state(outer)
+            self.states[k] = self._get()
+            self._set(outer)
 
     def state_dict(self) -> list:
         return list(self.states)
 
     def load_state_dict(self, states: list) -> None:
         if len(states) != len(self.states):
-            raise ValueError(f"SeedRNG: {len(states)} saved streams for {len(self.states)} seeds.")
+            raise CheckpointError(f"the checkpoint holds RNG streams for {len(states)} seeds, this run has "
+                                  f"{len(self.states)}.")
         self.states = list(states)

@@ -52,6 +52,8 @@ __all__ = [
     "evaluate",
     "fit_tsidm",
     "fit_tsidm_seeds",
+    "check_same_stage1_length",
+    "skip_stage1",
     "load_pretrained_tsidm",
     "make_data",
     "make_stage1",
@@ -319,11 +321,7 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
     t = cfg.tsidm
     beta = float(t.beta)
     device = resolve_device(cfg.device)
-    totals = {tsidm_steps(cfg, len(data)) for data in datas}
-    if len(totals) > 1:
-        raise DatasetError(f"seeds {seeds}: their data subsets give stage 1 different lengths {sorted(totals)}; "
-                           f"set tsidm.steps to train every seed as long.")
-    total = totals.pop()
+    total = check_same_stage1_length(cfg, datas, seeds)
     rng = SeedRNG(len(seeds))
     tsidms, losses, buffers = [], [], []
     for k, (seed, data) in enumerate(zip(seeds, datas)):
@@ -334,7 +332,7 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
             buffers.append(make_offline_replay_buffer(data, t.batch_size, device=device))
     stack = StackedLoss(losses)
     optim = torch.optim.Adam(stack.trainable(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
-    watch = FiniteWatch(f"stage 1 (TS-IDM, beta={beta:g}, seeds {seeds})")
+    watch = FiniteWatch(f"stage 1 (TS-IDM, beta={beta:g})", entries=[f"seed {seed}" for seed in seeds])
     start, tail, histories = 0, [], [{key: [] for key in TSIDM_TERMS} for _ in seeds]
     if run.resumes("tsidm"):
         run.restore(loss=stack, optim=optim, seed_rng=rng)
@@ -397,6 +395,21 @@ def load_pretrained_tsidm(cfg, data) -> TSIDM | None:
                       action_dim=data["action"].shape[-1])
 
 
+def skip_stage1(run: RunState) -> None:
+    """Moves a run that starts from a pretrained TS-IDM to stage 2, so that its stage-2 checkpoints resume there."""
+    if run.stage == "tsidm":
+        run.stage, run.candidate, run.step = "policy", 0, 0
+
+
+def check_same_stage1_length(cfg, datas: list, seeds: list[int]) -> int:
+    """Stage 1's length, shared by every seed of a ``seeds`` run; a :class:`DatasetError` if their subsets differ."""
+    totals = {tsidm_steps(cfg, len(data)) for data in datas}
+    if len(totals) > 1:
+        raise DatasetError(f"seeds {seeds}: their data subsets give stage 1 different lengths {sorted(totals)}; "
+                           f"set tsidm.steps to train every seed as long.")
+    return totals.pop()
+
+
 def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained: TSIDM | None = None) -> TSIDM:
     """Algorithm 1, lines 1-4: the ``pretrained`` TS-IDM, this run's finished stage 1, or a trained one.
 
@@ -404,6 +417,7 @@ def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained
     training loss is kept (App. B.5); finished candidates survive an interruption.
     """
     if pretrained is not None:
+        skip_stage1(run)
         return pretrained
     if run.stage != "tsidm":
         return TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
@@ -489,6 +503,11 @@ class Stage2:
                 "value_optim": self.value_optim, "guide_optim": self.guide_optim}
 
 
+def _adam_options(optim: torch.optim.Optimizer) -> dict:
+    group = optim.param_groups[0]
+    return {key: group[key] for key in ("lr", "betas", "eps", "weight_decay", "fused")}
+
+
 @dataclass
 class StackedStage2:
     """:class:`Stage2` for several seeds, one per entry of ``stages``, updated as one stacked step.
@@ -500,22 +519,24 @@ class StackedStage2:
 
     stages: list[Stage2]
     rng: SeedRNG
-    value: StackedLoss = None
-    guide: StackedLoss = None
-    value_optim: torch.optim.Optimizer = None
-    guide_optim: torch.optim.Optimizer = None
+    labels: list[str]
+    value: StackedLoss = field(init=False)
+    guide: StackedLoss = field(init=False)
+    value_optim: torch.optim.Optimizer = field(init=False)
+    guide_optim: torch.optim.Optimizer = field(init=False)
 
     def __post_init__(self):
-        cfg_value_lr = self.stages[0].value_optim.param_groups[0]["lr"]
-        cfg_guide_lr = self.stages[0].guide_optim.param_groups[0]["lr"]
         self.value = StackedLoss([stage.value_loss for stage in self.stages])
         self.guide = StackedLoss([stage.guide_loss for stage in self.stages])
         self.guide.share("value_network_params", self.value)
-        self.value_optim = torch.optim.Adam(self.value.trainable("value_network_params"), lr=cfg_value_lr, fused=True)
-        self.guide_optim = torch.optim.Adam(self.guide.trainable(), lr=cfg_guide_lr, fused=True)
-        self.target_weight = 1 - self.stages[0].target_updater.eps
-        self.value_watch = FiniteWatch("stage 2 (value)")
-        self.guide_watch = FiniteWatch("stage 2 (guide)")
+        # the seeds' own optimizers, side by side: Adam is elementwise, so one over the stack is each seed's
+        first = self.stages[0]
+        self.value_optim = torch.optim.Adam(self.value.trainable("value_network_params"),
+                                            **_adam_options(first.value_optim))
+        self.guide_optim = torch.optim.Adam(self.guide.trainable(), **_adam_options(first.guide_optim))
+        self.target_weight = 1 - first.target_updater.eps  # torchrl's SoftUpdate: target.lerp_(source, 1 - eps)
+        self.value_watch = FiniteWatch("stage 2 (value)", entries=self.labels)
+        self.guide_watch = FiniteWatch("stage 2 (guide)", entries=self.labels)
 
     def sample(self) -> TensorDictBase:
         return sample_seeds([stage.buffer for stage in self.stages], self.rng)

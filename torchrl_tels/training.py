@@ -44,33 +44,43 @@ class FiniteWatch:
     :meth:`update` records, on the losses' device, the first step at which each term
     was not finite; :meth:`check`, called at log intervals, raises
     :class:`NonFiniteLossError` naming that term and step. On a GPU this keeps the
-    training loop free of ``.item()`` calls between log intervals.
+    training loop free of ``.item()`` calls between log intervals. With ``entries``
+    (names for the entries of a loss with a leading dimension, e.g. one per seed),
+    the error also names the first entry that went non-finite.
     """
 
-    def __init__(self, stage: str):
+    def __init__(self, stage: str, entries: Sequence[str] | None = None):
         self.stage = stage
+        self.entries = list(entries) if entries else None
         self.first_bad: dict[str, torch.Tensor] = {}
         self.values: dict[str, torch.Tensor] = {}
+        self.where: dict[str, torch.Tensor] = {}
 
     def update(self, losses: TensorDictBase, step: int) -> None:
         for key, value in losses.items():
             if not key.startswith("loss_"):
                 continue
-            bad = ~torch.isfinite(value.detach()).all()
+            flat = value.detach().reshape(-1)
+            bad_entries = ~torch.isfinite(flat)
+            bad = bad_entries.any()
+            index = bad_entries.float().argmax()  # the first non-finite entry (0 when none is)
             first = self.first_bad.get(key)
             if first is None:
                 first = self.first_bad[key] = torch.full((), -1, dtype=torch.long, device=value.device)
                 self.values[key] = torch.zeros((), dtype=value.dtype, device=value.device)
+                self.where[key] = torch.zeros((), dtype=torch.long, device=value.device)
             newly = bad & (first < 0)
             self.first_bad[key] = torch.where(newly, torch.full_like(first, step), first)
-            self.values[key] = torch.where(newly, value.detach().reshape(-1)[0], self.values[key])
+            self.values[key] = torch.where(newly, flat[index], self.values[key])
+            self.where[key] = torch.where(newly, index, self.where[key])
 
     def check(self) -> None:
         for key, first in self.first_bad.items():
             if first.item() >= 0:
+                entry = f" ({self.entries[self.where[key].item()]})" if self.entries else ""
                 raise NonFiniteLossError(
-                    f"{self.stage}: {key} became {self.values[key].item()} at step {first.item()}; the run stops "
-                    f"here and the last good checkpoint is kept unchanged."
+                    f"{self.stage}: {key}{entry} became {self.values[key].item()} at step {first.item()}; the run "
+                    f"stops here and the last good checkpoint is kept unchanged."
                 )
 
 
