@@ -75,27 +75,44 @@ def main(cfg: DictConfig) -> dict:
         sys.exit(2)
 
 
-def train(cfg: DictConfig) -> dict:
-    # Everything that can refuse the run is checked before run_dir is created.
+def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
+    """Checks the config (before ``run_dir`` exists), sets threads and the global seed, loads the run's state."""
     validate_config(cfg)
     check_precision_supported(cfg.precision, cfg.device)
     torch.set_num_threads(resolve_threads(cfg.threads))
     torch.manual_seed(cfg.seed)
     run_dir = check_folder_creatable(cfg.run_dir)
     run = RunState.start(cfg, run_dir / "state.pt")
-    if run.stage == "done" and (run_dir / "results.json").exists():
-        print(f"{run_dir} already finished; nothing to resume")
-        return json.loads((run_dir / "results.json").read_text())
-    data, task = make_data(cfg)
-    pretrained = load_pretrained_tsidm(cfg, data)
-    if cfg.resume and (run_dir / "state.pt").exists():
+    if cfg.resume and (run_dir / "state.pt").exists() and run.stage != "done":
         print(f"resuming {run_dir} at {run.stage} step {run.step}")
+    return run_dir, run
 
+
+def open_run_dir(cfg: DictConfig, run: RunState, run_dir: Path) -> RunLogger:
+    """Creates ``run_dir`` with the resolved config; the run's logger (CSV, wandb when it works)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
                        config=OmegaConf.to_container(cfg, resolve=True), wandb_id=run.wandb_id)
     run.wandb_id = logger.wandb_id
+    return logger
+
+
+def finished_results(run: RunState, run_dir: Path) -> dict | None:
+    if run.stage == "done" and (run_dir / "results.json").exists():
+        print(f"{run_dir} already finished; nothing to resume")
+        return json.loads((run_dir / "results.json").read_text())
+    return None
+
+
+def train(cfg: DictConfig) -> dict:
+    # Everything that can refuse the run is checked before run_dir is created.
+    run_dir, run = start_run(cfg)
+    if (done := finished_results(run, run_dir)) is not None:
+        return done
+    data, task = make_data(cfg)
+    pretrained = load_pretrained_tsidm(cfg, data)
+    logger = open_run_dir(cfg, run, run_dir)
 
     # Algorithm 1, lines 1-4: train the TS-IDM (Eq. 3-7).
     tsidm = make_stage1(cfg, data, run, run_dir, logger, pretrained)
@@ -157,35 +174,22 @@ def seed_config(cfg: DictConfig, seed: int, run_dir: Path) -> DictConfig:
 
 def train_seeds(cfg: DictConfig) -> dict:
     """Algorithm 1 for every seed of ``cfg.seeds`` at once; each seed's outputs in ``run_dir/seed<k>``."""
-    validate_config(cfg)
-    check_precision_supported(cfg.precision, cfg.device)
-    torch.set_num_threads(resolve_threads(cfg.threads))
     seeds = list(cfg.seeds)
-    run_dir = check_folder_creatable(cfg.run_dir)
-    run = RunState.start(cfg, run_dir / "state.pt")
-    if run.stage == "done" and (run_dir / "results.json").exists():
-        print(f"{run_dir} already finished; nothing to resume")
-        return json.loads((run_dir / "results.json").read_text())
+    run_dir, run = start_run(cfg)  # the global stream, which draws inside the stacked update (dropout), too
+    if (done := finished_results(run, run_dir)) is not None:
+        return done
     configs = [seed_config(cfg, seed, run_dir) for seed in seeds]
     datas, task = zip(*(make_data(c) for c in configs))
     task = task[0]
     if not cfg.tsidm.checkpoint:
         check_same_stage1_length(cfg, datas, seeds)
     pretrained = load_pretrained_tsidm(cfg, datas[0])
-    # Draws inside the stacked update (dropout) come from the global stream; seed it as a single run does.
-    torch.manual_seed(cfg.seed)
     seed_runs = ([RunState.from_seed_record(r) for r in run.per_seed] if run.per_seed
                  else [RunState(config={}) for _ in seeds])
-    if cfg.resume and (run_dir / "state.pt").exists():
-        print(f"resuming {run_dir} at {run.stage} step {run.step}")
-
+    logger = open_run_dir(cfg, run, run_dir)
     for c in configs:
         Path(c.run_dir).mkdir(parents=True, exist_ok=True)
         (Path(c.run_dir) / "config.yaml").write_text(OmegaConf.to_yaml(c, resolve=True))
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
-                       config=OmegaConf.to_container(cfg, resolve=True), wandb_id=run.wandb_id)
-    run.wandb_id = logger.wandb_id
 
     def save(**modules):
         run.per_seed = [r.seed_record() for r in seed_runs]
