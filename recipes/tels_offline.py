@@ -125,7 +125,7 @@ def train(cfg: DictConfig) -> dict:
         run.restore(**stage2.modules())
         start = run.step
 
-    with run.time("policy_s") as clock:
+    with run.time("policy_s"):
         progress = tqdm.tqdm(range(start, cfg.policy.steps), desc="stage 2: value + guide", file=sys.stdout,
                              initial=start, total=cfg.policy.steps, mininterval=2.0)
         for step in progress:
@@ -148,7 +148,6 @@ def train(cfg: DictConfig) -> dict:
                 progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()
-                clock.update()
                 run.step = step + 1
                 run.save(run_dir / "state.pt", **{k: m.state_dict() for k, m in stage2.modules().items()})
 
@@ -233,7 +232,7 @@ def train_seeds(cfg: DictConfig) -> dict:
         run.restore(**stage2.modules())
         start = run.step
 
-    with run.time("policy_s") as clock:
+    with run.time("policy_s"):
         progress = tqdm.tqdm(range(start, cfg.policy.steps), desc=f"stage 2: value + guide, {len(seeds)} seeds",
                              file=sys.stdout, initial=start, total=cfg.policy.steps, mininterval=2.0)
         for step in progress:
@@ -258,7 +257,6 @@ def train_seeds(cfg: DictConfig) -> dict:
                 progress.set_postfix(score=f"{sum(r.evaluations[-1]['score'] for r in seed_runs) / len(seeds):.1f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()
-                clock.update()
                 run.step = step + 1
                 save(**{name: m.state_dict() for name, m in stage2.modules().items()})
 

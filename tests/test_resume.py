@@ -303,3 +303,19 @@ def test_non_finite_weights_are_never_checkpointed(tmp_path, driver):
     assert (state["stage"], state["step"]) == ("policy", 48)
     for name in ("value_loss", "guide_loss"):
         assert all(torch.isfinite(t).all() for t in state["modules"][name].values() if t.is_floating_point())
+
+
+def test_checkpoint_counts_the_time_spent_so_far(tmp_path):
+    """A checkpoint written inside a timed span holds the time up to that moment, so a run killed
+    before the span ends keeps it; nested spans both count."""
+    from torchrl_tels.trainer import RunState
+
+    run = RunState(config={})
+    with run.time("policy_s"):
+        time.sleep(0.05)
+        with run.time("eval_s"):
+            time.sleep(0.05)
+            run.save(tmp_path / "state.pt")
+    saved = load_training_state(tmp_path / "state.pt")["wall"]
+    assert saved["policy_s"] >= 0.1 and 0.05 <= saved["eval_s"] < saved["policy_s"]
+    assert run.wall["policy_s"] >= saved["policy_s"] and run._clocks == []

@@ -171,6 +171,9 @@ class RunState:
     rng: dict | None = None
     per_seed: list = field(default_factory=list)  # with ``seeds``: each seed's record (:meth:`seed_record`)
 
+    def __post_init__(self):
+        self._clocks: list[_Stopwatch] = []  # the running :meth:`time` spans, brought up to date by :meth:`save`
+
     @classmethod
     def start(cls, cfg, path: Path) -> "RunState":
         """A fresh state, or with ``resume=true`` the one in ``path`` (checked to be the same run)."""
@@ -183,7 +186,12 @@ class RunState:
         return cls(**{k: v for k, v in saved.items() if k in fields and k != "config"}, config=config)
 
     def save(self, path: Path, **modules: Any) -> None:
-        """Writes this state, ``modules`` (state dicts) and, with them, the RNG streams atomically."""
+        """Writes this state, ``modules`` (state dicts) and, with them, the RNG streams atomically.
+
+        The wall-clock spans still running (:meth:`time`) are counted up to now first, so a
+        resumed run's times include the work before the interruption."""
+        for clock in self._clocks:
+            clock.update()
         self.modules = modules
         self.rng = get_rng_state() if modules else None
         # A shallow record: torch.save writes the tensors as they are, no copy needed.
@@ -211,15 +219,16 @@ class RunState:
 
     def time(self, key: str):
         """A context that adds the wall-clock time it spans to ``wall[key]``."""
-        return _Stopwatch(self.wall, key)
+        return _Stopwatch(self.wall, key, self._clocks)
 
 
 class _Stopwatch:
-    def __init__(self, wall: dict, key: str):
-        self.wall, self.key = wall, key
+    def __init__(self, wall: dict, key: str, running: list):
+        self.wall, self.key, self.running = wall, key, running
 
     def __enter__(self):
         self.start = time.perf_counter() - self.wall.get(self.key, 0.0)
+        self.running.append(self)
         return self
 
     def update(self):
@@ -227,6 +236,7 @@ class _Stopwatch:
 
     def __exit__(self, *exc):
         self.update()
+        self.running.remove(self)
 
 
 # -------------------------------------------------------------------------- stage 1
@@ -425,7 +435,7 @@ def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained
     candidates = list(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else [float(cfg.tsidm.beta)]
     key = SELECTION_KEYS[cfg.tsidm.beta_selection]
     best = None
-    with run.time("tsidm_s") as clock:
+    with run.time("tsidm_s"):
         for candidate, beta in enumerate(candidates):
             if candidate < len(run.beta_results):
                 continue  # finished before an interruption; its model is in best_tsidm.pt
@@ -438,7 +448,6 @@ def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained
             if min(r[key] for r in run.beta_results) == final[key]:
                 best = (model, history, beta)
                 model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
-            clock.update()
             run.candidate, run.step, run.tsidm_history = candidate + 1, 0, {}
             run.save(run_dir / "state.pt")
         if best is None:
