@@ -4,9 +4,10 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase, GymEnv, SerialEnv
+from torchrl.envs import EnvBase, GymEnv, GymWrapper
+from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_tels.errors import TaskError
@@ -27,17 +28,28 @@ def make_eval_env(env_id: str, **kwargs) -> GymEnv:
 
 
 def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] | None = None) -> EnvBase:
-    """``copies`` evaluation envs stepped together: a TorchRL ``SerialEnv`` (batch size ``[copies]``) of
-    :func:`make_eval_env` each passed through ``wrap`` (e.g. into a ``TransformedEnv``), or the one env
-    itself when ``copies`` is 1. :func:`rollout_episodes` runs one episode on each copy, with one policy
-    call per step for all of them."""
+    """``copies`` evaluation envs stepped together (batch size ``[copies]``), passed through ``wrap``
+    (e.g. into a ``TransformedEnv``), or :func:`make_eval_env` itself when ``copies`` is 1.
+    :func:`rollout_episodes` runs one episode on each copy, with one policy call per step for all of them.
+
+    The copies are one Gymnasium ``SyncVectorEnv`` behind one TorchRL ``GymWrapper``: a batch step is
+    one TorchRL step, where a ``SerialEnv`` of ``copies`` envs pays TorchRL's per-step overhead once per
+    copy (BENCHMARKS.md, "Evaluation"). Gymnasium's ``SAME_STEP`` autoreset is the mode TorchRL's wrapper
+    accepts; :func:`rollout_episodes` keeps each copy's first episode only."""
     if copies < 1:
         raise ValueError(f"make_eval_envs: copies must be >= 1, got {copies}.")
-    make = (lambda: make_eval_env(env_id)) if wrap is None else (lambda: wrap(make_eval_env(env_id)))
     if copies == 1:
-        return make()
-    eval_env_spaces(env_id)  # an unknown id fails here, with the clear error, not inside a worker
-    return SerialEnv(copies, make)
+        return make_eval_env(env_id) if wrap is None else wrap(make_eval_env(env_id))
+    import gymnasium as gym
+
+    eval_env_spaces(env_id)  # an unknown id fails here, with the clear error
+    vector = gym.make_vec(env_id, num_envs=copies, vectorization_mode="sync",
+                          vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
+    env = GymWrapper(vector)
+    # one step, so that TorchRL's autoreset bookkeeping (VecGymEnvTransform) exists before the first
+    # explicit full reset of rollout_episodes, which it cannot take before any step
+    env.rand_step(env.reset())
+    return env if wrap is None else wrap(env)
 
 
 def eval_env_spaces(env_id: str):
@@ -85,10 +97,18 @@ def rollout_episodes(
             return
         copies = env.batch_size[0]
         for first in range(0, episodes, copies):
-            # set_seed of one env, copy by copy: reset with the seed; the rollout then resets again
-            env.reset(list_of_kwargs=[{"seed": seed + first + j} for j in range(copies)])
+            # As set_seed of one env, copy by copy: reset with the episode's seed, then reset again.
+            # A vector env's set_seed(s) seeds its copies s, s + 1, ...; a SerialEnv's does not, so it
+            # gets each copy's seed explicitly.
+            if isinstance(getattr(env, "base_env", env), BatchedEnvBase):
+                env.reset(list_of_kwargs=[{"seed": seed + first + j} for j in range(copies)])
+                start = env.reset()
+            else:
+                env.set_seed(seed + first)
+                # every copy: a vector env's plain reset would only replay the copies that were done
+                start = env.reset(TensorDict({"_reset": torch.ones(copies, 1, dtype=torch.bool)}, [copies]))
             batch = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True,
-                                auto_cast_to_device=cast)
+                                auto_cast_to_device=cast, auto_reset=False, tensordict=start)
             done = batch["next", "done"].reshape(copies, -1)
             for j in range(min(copies, episodes - first)):
                 ends = done[j].nonzero()
