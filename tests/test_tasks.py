@@ -223,3 +223,15 @@ def test_batched_evaluation_matches_sequential_with_a_network_policy():
     batched = evaluate_policy(policy, batch, 4, seed=3, max_steps=60)
     assert len(set(sequential)) == 4
     np.testing.assert_allclose(batched, sequential, rtol=1e-4)
+
+
+def test_building_batched_eval_envs_leaves_the_training_rng_alone():
+    """Creating the evaluation envs must not shift the global torch stream that a run's networks and
+    batches draw from; otherwise a batched run would initialise differently from a sequential one."""
+    from torchrl_tels.envs import make_eval_envs
+
+    torch.manual_seed(0)
+    expected = torch.rand(3)
+    torch.manual_seed(0)
+    make_eval_envs("Hopper-v4", 3)
+    assert torch.equal(torch.rand(3), expected)

@@ -45,10 +45,13 @@ def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] 
     eval_env_spaces(env_id)  # an unknown id fails here, with the clear error
     vector = gym.make_vec(env_id, num_envs=copies, vectorization_mode="sync",
                           vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
-    env = GymWrapper(vector)
-    # one step, so that TorchRL's autoreset bookkeeping (VecGymEnvTransform) exists before the first
-    # explicit full reset of rollout_episodes, which it cannot take before any step
-    env.rand_step(env.reset())
+    # Building the wrapper (its dummy rollout reads the info specs) and the step below draw random
+    # actions; on a forked stream, so that creating evaluation envs leaves the training RNG as it was.
+    with torch.random.fork_rng(devices=[]):
+        env = GymWrapper(vector)
+        # one step, so that TorchRL's autoreset bookkeeping (VecGymEnvTransform) exists before the first
+        # explicit full reset of rollout_episodes, which it cannot take before any step
+        env.rand_step(env.reset())
     return env if wrap is None else wrap(env)
 
 
