@@ -11,7 +11,6 @@
 #
 # Device call (from the repository root; $OUT comes back):
 #   bash benchmarks/gpu_check.sh            with carry: [".whl"] and timeout_s 580
-# Not yet run on a GPU machine: no session so far was lent one.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 WHEELS="torchrl==0.14.1 tensordict==0.14.3 hoptorch==0.1.4 pyvers==0.2.3 orjson==3.13.0 gymnasium==1.4.0
