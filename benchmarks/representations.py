@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from benchmarks.harness import invocation, machine_description, REPO, save_figure, skip_existing, write_result
+from benchmarks.step_floor import recipe_config
 
 ENCODERS = ("tsidm", "ae", "vae", "contrastive")
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
@@ -43,15 +44,11 @@ ENCODER_STEPS, POLICY_STEPS, EVAL_INTERVAL, EPISODES = 3000, 5000, 500, 10
 CONTRASTIVE_TEMPERATURE = 0.1
 
 
-def recipe_config(overrides=()):
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(str(REPO / "recipes" / "config"), version_base="1.3"):
-        return compose("config", overrides=["device=cpu", f"tsidm.steps={ENCODER_STEPS}", *overrides])
-
-
 def squared_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a - b).pow(2).sum(-1).mean()
+    """Eq. (3)'s :math:`\|a - b\|^2`, summed over the vector (:func:`~torchrl_tels.modules.squared_norm`), batch mean."""
+    from torchrl_tels.modules import squared_norm
+
+    return squared_norm(a - b).mean()
 
 
 def autoencoder_loss(tsidm, batch, extra) -> torch.Tensor:
@@ -86,7 +83,7 @@ def train_encoder(encoder: str, data, seed: int, steps: int = ENCODER_STEPS, ove
     from torchrl_tels.diagnostics import latent_statistics
     from torchrl_tels.trainer import fit_tsidm, make_tsidm, RunState
 
-    cfg = recipe_config([f"seed={seed}", f"tsidm.steps={steps}", *overrides])
+    cfg = recipe_config(["device=cpu", f"seed={seed}", f"tsidm.steps={steps}", *overrides])
     torch.manual_seed(seed)
     if encoder == "tsidm":
         with tempfile.TemporaryDirectory() as tmp:
