@@ -10,6 +10,7 @@ arrays, wandb sweep agents and several machines. Run from the repository root::
     python -m benchmarks.run_grid --grid --seed 0 1 2            # every missing combination, one after another
     python -m benchmarks.run_grid --list --seed 0 1 2 > jobs.txt  # one command per missing run (job arrays)
     python -m benchmarks.run_grid --table                        # TABLE.md and PNGs from what exists
+    python -m benchmarks.run_grid --table --longer benchmarks/results/long20k   # beside a longer budget
 
 Methods: ``tels`` (``recipes/tels_offline.py`` in a subprocess, its run folder
 kept at ``<work-dir>/tels/<task>/seed<k>`` and resumed if interrupted),
@@ -291,8 +292,10 @@ def _budget_cell(by_method: dict) -> str:
     return text
 
 
-def render_table(results_dir: Path) -> Path:
+def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
+    """``results_dir``/TABLE.md and its PNGs; ``longer_dirs`` hold the same grid at longer budgets."""
     found = load_results(results_dir)
+    longer = {folder: load_results(folder) for folder in longer_dirs}
     tasks = [t for t in TASKS if t in found] + sorted(t for t in found if t not in TASKS)
     lines = [
         "# TELS against TorchRL's offline baselines on the D4RL-10k sets",
@@ -368,8 +371,9 @@ def render_table(results_dir: Path) -> Path:
         lines.append(f"| {LABELS[method]} | {threads or 'default'} | {machine} | {len(runs)} | {policy_cell} | "
                      f"{tsidm_cell} |")
 
-    lines += aggregate_section(found, results_dir / "plots")
+    lines += aggregate_section(found, results_dir / "plots", longer)
     lines += flatness_section(found, tasks)
+    lines += longer_budget_section(found, longer, tasks, results_dir)
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -396,48 +400,67 @@ def score_matrix(found: dict, method: str, tasks=AGGREGATE_TASKS):
     return np.array([[d[s] for d in by_task] for s in seeds])
 
 
-def aggregate_section(found: dict, folder: Path) -> list[str]:
+def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None = None) -> list[str]:
     """IQM and mean over tasks × seeds with stratified-bootstrap 95 % intervals (``benchmarks.aggregate``),
-    as a table and a PNG with the performance profiles."""
+    as a table and a PNG with the performance profiles; a method run at a longer budget on all four sets
+    (``longer``) gets a row of its own."""
     from benchmarks import aggregate
 
-    matrices = {m: score_matrix(found, m) for m in TABLE_COLUMNS}
-    matrices = {m: x for m, x in matrices.items() if x is not None}
+    matrices = {LABELS[m]: score_matrix(found, m) for m in TABLE_COLUMNS}
+    for other in (longer or {}).values():
+        for method in TABLE_COLUMNS:
+            steps = {r["budget"]["policy_steps"] for t in AGGREGATE_TASKS for r in other.get(t, {}).get(method, [])}
+            if len(steps) == 1:
+                matrices[f"{LABELS[method]} at {_steps_label(steps.pop())} steps"] = score_matrix(other, method)
+    matrices = {label: x for label, x in matrices.items() if x is not None}
     if not matrices:
         return []
     lines = ["", "## Aggregate over the four shared sets", "",
              "Interquartile mean (IQM) and mean of the final scores over tasks × seeds, with 95 % "
              "stratified-bootstrap intervals (2,000 resamples of each task's seeds; `benchmarks/aggregate.py`, "
-             "rliable's definitions). Only seeds present on all four sets enter; each row's budget is the "
-             "grid's (see the table above).", "",
+             "rliable's definitions). Only seeds present on all four sets enter; a row without a budget is at "
+             "the grid's (see the table above).", "",
              "| method | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|"]
     estimates = {}
-    for method, scores in matrices.items():
-        estimates[method] = [aggregate.stratified_bootstrap_ci(scores, statistic)
-                             for statistic in (aggregate.iqm, aggregate.mean)]
-        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in estimates[method]]
-        lines.append(f"| {LABELS[method]} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
+    for label, scores in matrices.items():
+        estimates[label] = [aggregate.stratified_bootstrap_ci(scores, statistic)
+                            for statistic in (aggregate.iqm, aggregate.mean)]
+        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in estimates[label]]
+        lines.append(f"| {label} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
     path = _aggregate_plot(matrices, estimates, folder)
     return lines + ["", f"![aggregate](plots/{path.name})"]
+
+
+#: A curve counts as flat when the least-squares line through the second half of its evaluations (seed mean)
+#: moves less than this many points across that half.
+FLAT_POINTS = 2.0
+
+
+def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float] | None:
+    """``(steps, seed-mean scores, slope per 1k steps)`` over the second half of the evaluation steps every
+    run shares, or ``None`` with fewer than four shared evaluations."""
+    import numpy as np
+
+    curves = [{e["step"]: e["score"] for e in r.get("evaluations", [])} for r in runs]
+    steps = sorted(set.intersection(*(set(c) for c in curves))) if curves else []
+    if len(steps) < 4:
+        return None
+    late = steps[len(steps) // 2:]
+    means = [statistics.fmean(c[s] for c in curves) for s in late]
+    return late, means, float(np.polyfit(np.array(late) / 1000.0, means, 1)[0])
 
 
 def flatness_section(found: dict, tasks: list[str]) -> list[str]:
     """Has each method's learning curve flattened at its budget? The slope of a least-squares line through
     the last half of its evaluations (seed-mean score against step), per 1k steps."""
-    import numpy as np
-
     rows = []
     for task in tasks:
         for method in TABLE_COLUMNS:
-            runs = found[task].get(method, [])
-            curves = [{e["step"]: e["score"] for e in r.get("evaluations", [])} for r in runs]
-            steps = sorted(set.intersection(*(set(c) for c in curves))) if curves else []
-            if len(steps) < 4:
+            fit = second_half_fit(found[task].get(method, []))
+            if fit is None:
                 continue
-            late = steps[len(steps) // 2:]
-            means = [statistics.fmean(c[s] for c in curves) for s in late]
-            slope = float(np.polyfit(np.array(late) / 1000.0, means, 1)[0])
-            rows.append(f"| {task} | {LABELS[method]} | {_steps_label(steps[-1])} | {len(runs)} | "
+            late, means, slope = fit
+            rows.append(f"| {task} | {LABELS[method]} | {_steps_label(late[-1])} | {len(found[task][method])} | "
                         f"{means[0]:.1f} → {means[-1]:.1f} | {slope:+.2f} |")
     if not rows:
         return []
@@ -447,6 +470,55 @@ def flatness_section(found: dict, tasks: list[str]) -> list[str]:
             "budget stops the method while it is still changing.", "",
             "| task | method | budget | seeds | second half: first → last evaluation | slope per 1k steps |",
             "|---|---|---|---|---|---|", *rows]
+
+
+def _score_cell(runs: list[dict]) -> str:
+    scores = [r["final_normalized_score_mean"] for r in runs]
+    if not scores:
+        return "—"
+    mean, std = _mean_std(scores)
+    return f"**{mean:.1f}** ± {std:.1f} (n={len(scores)})" if len(scores) > 1 else f"**{mean:.1f}** (n=1)"
+
+
+def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], results_dir: Path) -> list[str]:
+    """Each method at this grid's budget beside the same method, task and protocol at a longer budget (the
+    ``--longer`` folders), with the longer curve's second-half slope and whether it is flat
+    (:data:`FLAT_POINTS`): the budget a baseline needs before its score can be compared."""
+    rows = []
+    for folder, other in longer.items():
+        for task in [t for t in tasks if t in other] + sorted(t for t in other if t not in tasks):
+            for method in TABLE_COLUMNS:
+                runs = other[task].get(method, [])
+                if not runs:
+                    continue
+                here = found.get(task, {}).get(method, [])
+                fit = second_half_fit(runs)
+                if fit is None:
+                    slope_cell, verdict = "—", "too few evaluations"
+                else:
+                    late, _, slope = fit
+                    moves = slope * (late[-1] - late[0]) / 1000.0
+                    slope_cell = f"{slope:+.2f} ({moves:+.1f} across it)"
+                    verdict = "flat" if abs(moves) < FLAT_POINTS else ("**still rising**" if moves > 0
+                                                                       else "**still falling**")
+                rows.append(f"| {task} | {LABELS[method]} | {_budget_cell({method: here}) if here else '—'} | "
+                            f"{_score_cell(here)} | {_budget_cell({method: runs})} | {_score_cell(runs)} | "
+                            f"{slope_cell} | {verdict} | [{repo_relative(folder)}]({_link(folder, results_dir)}) |")
+    if not rows:
+        return []
+    return ["", "## Each method at this budget and at a longer one", "",
+            "The same method, set and evaluation protocol at this table's budget and at a longer budget "
+            "(`--longer` folders of `run_grid` results). The slope is that of a least-squares line through the "
+            "second half of the longer run's seed-mean curve, per 1k steps, and how far that line moves across "
+            f"the half; *flat* means it moves less than {FLAT_POINTS:g} points. A baseline is compared at a "
+            "budget where it is flat.", "",
+            "| task | method | budget | score | longer budget | score | second half: slope per 1k | "
+            "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
+
+
+def _link(folder: Path, results_dir: Path) -> str:
+    """``folder``'s TABLE.md relative to ``results_dir``'s, for a markdown link."""
+    return Path(os.path.relpath(folder / "TABLE.md", results_dir)).as_posix()
 
 
 def _aggregate_plot(matrices: dict, estimates: dict, folder: Path) -> Path:
@@ -466,13 +538,13 @@ def _aggregate_plot(matrices: dict, estimates: dict, folder: Path) -> Path:
             ax_ci.plot([low, high], [y, y], color=f"C{col}", linewidth=4, alpha=0.6,
                        label=name if row == 0 else None)
             ax_ci.plot([point], [y], "k|", markersize=10)
-    ax_ci.set_yticks(range(len(methods)), [LABELS[m] for m in methods])
+    ax_ci.set_yticks(range(len(methods)), methods)
     ax_ci.set_xlabel("D4RL normalized score")
     ax_ci.set_title("95 % stratified-bootstrap intervals")
     ax_ci.legend(fontsize=8)
     taus = np.linspace(0, max(float(x.max()) for x in matrices.values()) * 1.05, 100)
     for method in methods:
-        ax_profile.plot(taus, aggregate.performance_profile(matrices[method], taus), label=LABELS[method])
+        ax_profile.plot(taus, aggregate.performance_profile(matrices[method], taus), label=method)
     ax_profile.set_xlabel("score τ")
     ax_profile.set_ylabel("fraction of runs × tasks above τ")
     ax_profile.set_title("performance profiles")
@@ -609,6 +681,9 @@ def parse_args(argv=None):
     parser.add_argument("--grid", action="store_true", help="run every missing (method, task, seed), in turn")
     parser.add_argument("--list", action="store_true", help="print one command per missing run and exit")
     parser.add_argument("--table", action="store_true", help="render TABLE.md and the PNGs from existing results")
+    parser.add_argument("--longer", action="append", type=Path, default=[], metavar="DIR",
+                        help="with --table: a --results-dir of the same grid at a longer budget, shown beside "
+                             "this one with its curves' flatness (repeatable)")
     args = parser.parse_args(argv)
     args.method, args.task = _split(args.method), _split(args.task)
     try:
@@ -630,6 +705,12 @@ def parse_args(argv=None):
     if args.threads is not None and args.threads < 1:
         parser.error("--threads must be positive")
     args.results_dir, args.work_dir = args.results_dir.resolve(), args.work_dir.resolve()
+    args.longer = [folder.resolve() for folder in args.longer]
+    missing = [str(folder) for folder in args.longer if not folder.is_dir()]
+    if missing:
+        parser.error(f"--longer folder(s) not found: {', '.join(missing)}")
+    if args.longer and not args.table:
+        parser.error("--longer only applies to --table")
     single = not (args.grid or args.list or args.table)
     if single:
         if not (args.method and args.task and args.seed is not None):
@@ -661,7 +742,7 @@ def main(argv=None) -> int:
                 print(f"!! {method} {task} seed {seed} failed: {type(err).__name__}: {err}", file=sys.stderr)
                 failed.append((method, task, seed))
     if args.table:
-        print(f"wrote {render_table(args.results_dir)}")
+        print(f"wrote {render_table(args.results_dir, tuple(args.longer))}")
     if failed:
         print(f"{len(failed)} run(s) failed: {failed}", file=sys.stderr)
         return 1

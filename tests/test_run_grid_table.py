@@ -1,0 +1,88 @@
+"""``run_grid --table --longer``: each method beside a longer budget, with the verdict on its curve.
+
+The records are synthetic, with curves whose slopes are known exactly, so every figure the table prints is
+checked against a value computed here by hand.
+"""
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from benchmarks import run_grid
+
+TASKS = run_grid.AGGREGATE_TASKS
+
+
+def _record(seed: int, steps: int, interval: int, curve) -> dict:
+    evaluations = [{"step": s, "score": float(curve(s))} for s in range(interval, steps + 1, interval)]
+    final = float(np.mean([e["score"] for e in evaluations[-10:]]))
+    return {"seed": seed, "final_normalized_score_mean": final, "evaluations": evaluations,
+            "budget": {"policy_steps": steps, "eval_interval": interval, "eval_episodes": 10}}
+
+
+def _write(folder, method, task, record):
+    path = run_grid.result_path(folder, method, task, record["seed"])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record))
+
+
+@pytest.fixture
+def grids(tmp_path):
+    short, longer = tmp_path / "grid", tmp_path / "long20k"
+    for task in TASKS:
+        for seed in (0, 1):
+            _write(short, "bc", task, _record(seed, 5000, 500, lambda s: 30.0 + seed))
+            # BC flat at 20k (+0.1 per 1k); TD3+BC rising 1 point per 1k steps
+            _write(longer, "bc", task, _record(seed, 20000, 2000, lambda s: 40.0 + seed + 1e-4 * s))
+            _write(longer, "td3bc", task, _record(seed, 20000, 2000, lambda s: 10.0 + seed + 1e-3 * s))
+    return short, longer
+
+
+def _row(text: str, task: str, label: str) -> list[str]:
+    section = text.split("## Each method at this budget and at a longer one")[1]
+    rows = [line for line in section.splitlines() if line.startswith(f"| {task} | {label} |")]
+    assert len(rows) == 1, rows
+    return [cell.strip() for cell in rows[0].strip("|").split("|")]
+
+
+def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
+    short, longer = grids
+    text = run_grid.render_table(short, (longer,)).read_text()
+    task = TASKS[0]
+    bc = _row(text, task, "BC")
+    assert bc[2].startswith("5k steps") and bc[4].startswith("20k steps")
+    assert bc[3] == "**30.5** ± 0.5 (n=2)"
+    # final score: mean of the last 10 of 10 evaluations (2k..20k) of 40 + seed + 1e-4 s, seed-mean +0.5
+    expected = 40.5 + 1e-4 * np.mean(np.arange(2000, 20001, 2000))
+    assert bc[5] == f"**{expected:.1f}** ± 0.5 (n=2)"
+    # second half: evaluations 12k..20k, slope 0.1 per 1k, 0.8 points across the 8k
+    assert bc[6] == "+0.10 (+0.8 across it)" and bc[7] == "flat"
+    td3bc = _row(text, task, "TD3+BC")
+    assert td3bc[2] == "—" and td3bc[3] == "—"
+    assert td3bc[6] == "+1.00 (+8.0 across it)" and td3bc[7] == "**still rising**"
+    assert bc[8].endswith("(../long20k/TABLE.md)")  # relative to grid/TABLE.md
+
+
+def test_the_aggregate_gets_a_row_per_longer_budget(grids):
+    short, longer = grids
+    text = run_grid.render_table(short, (longer,)).read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| BC at 20k steps |"))
+    scores = np.array([[json.loads(run_grid.result_path(longer, "bc", t, s).read_text())
+                        ["final_normalized_score_mean"] for t in TASKS] for s in (0, 1)])
+    iqm = stats.trim_mean(scores.reshape(-1), 0.25)
+    assert re.search(rf"\| 2 × 4 \| \*\*{iqm:.1f}\*\* \[", row), (row, iqm)
+    assert any(line.startswith("| BC | 2 × 4 | **30.5**") for line in text.splitlines())
+    assert (short / "plots" / "aggregate.png").stat().st_size > 0
+
+
+def test_a_missing_longer_folder_is_one_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        run_grid.parse_args(["--table", "--longer", str(tmp_path / "nowhere")])
+    assert "--longer folder(s) not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        run_grid.parse_args(["--method", "bc", "--task", TASKS[0], "--seed", "0", "--longer", str(tmp_path)])
+    assert "--longer only applies to --table" in capsys.readouterr().err
