@@ -19,8 +19,10 @@ Hyperparameters (:data:`HYPERPARAMETERS`, each with its source):
   ``biased_softplus_1.0`` with lower bound 0.1); expectile 0.7, temperature
   3.0, gamma 0.99, soft target update tau 0.005 on Q, L2 Q loss, Adam lr 3e-4
   for all three nets, one update of all three per step. States are **not**
-  normalized and rewards are not rescaled, as in that implementation (the IQL
-  paper rescales locomotion rewards; TorchRL's script does not).
+  normalized and rewards are not rescaled, as in that implementation. The IQL
+  paper (Kostrikov et al., 2022, App. B) rescales locomotion rewards by
+  ``1000 / (max - min)`` of the dataset's episode returns; ``reward_scale=
+  "return_range"`` does that (:func:`return_range_scale`).
 * IQL in latent space: the same, with the networks reading ``"latent"``; the
   TS-IDM encoder normalizes states itself before encoding.
 * TD3+BC: TorchRL's ``sota-implementations/td3_bc`` config: 256x256 ReLU MLPs,
@@ -83,6 +85,7 @@ _IQL = {
     "default_policy_scale": 1.0,
     "scale_lb": 0.1,
     "normalize_observations": False,
+    "reward_scale": 1.0,
     "reward_bias": 0.0,
     "source": "torchrl sota-implementations/iql/offline_config.yaml (states not normalized, as there)",
 }
@@ -130,6 +133,35 @@ MAZE_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
 }
 
 _OBS_NORM_EPS = 1e-3  # TD3+BC paper: std + 1e-3
+
+
+def return_range_scale(data: TensorDictBase) -> float:
+    """The IQL paper's locomotion reward scale, ``1000 / (max R - min R)`` over the undiscounted returns R of
+    the dataset's episodes (the ``"episode"`` ids; a trailing partial episode counts as one)."""
+    episode = data["episode"].reshape(-1).long()
+    returns = torch.zeros(int(episode.max()) + 1, dtype=torch.float64).index_add_(
+        0, episode, data["next", "reward"].reshape(-1).double())[episode.unique()]
+    spread = float(returns.max() - returns.min())
+    if not spread > 0:
+        raise ValueError(f"reward_scale='return_range' needs episodes with different returns; got {len(returns)} "
+                         "episode(s) with one return.")
+    return 1000.0 / spread
+
+
+def _scale_rewards(data: TensorDictBase, hp: dict[str, Any]) -> tuple[TensorDictBase, float]:
+    """Rewards as the baseline trains on them, ``r * reward_scale + reward_bias``, and the scale used."""
+    setting = hp.get("reward_scale", 1.0)
+    if setting == "return_range":
+        scale = return_range_scale(data)
+    elif isinstance(setting, (int, float)) and not isinstance(setting, bool) and setting > 0:
+        scale = float(setting)
+    else:
+        raise ValueError(f"reward_scale must be a positive number or 'return_range', got {setting!r}.")
+    if scale == 1.0 and not hp.get("reward_bias"):
+        return data, scale
+    data = data.clone()
+    data["next", "reward"] = data["next", "reward"] * scale + hp.get("reward_bias", 0.0)
+    return data, scale
 
 
 def _mlp(in_features: int, out_features: int, hidden_sizes) -> MLP:
@@ -308,11 +340,9 @@ def train_baseline(
     else:
         data = load_dataset(dataset)
     task = get_task(task or Path(str(dataset)).stem)
-    if hp.get("reward_bias"):
-        data = data.clone()
-        data["next", "reward"] = data["next", "reward"] + hp["reward_bias"]
+    data, reward_scale = _scale_rewards(data, hp)
     obs_dim = data["observation"].shape[-1]
-    extra: dict[str, Any] = {}
+    extra: dict[str, Any] = {"reward_scale_applied": reward_scale} if "reward_scale" in hp else {}
 
     if method == "iql_latent":
         if tsidm_path is None:

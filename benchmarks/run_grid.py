@@ -11,6 +11,7 @@ arrays, wandb sweep agents and several machines. Run from the repository root::
     python -m benchmarks.run_grid --list --seed 0 1 2 > jobs.txt  # one command per missing run (job arrays)
     python -m benchmarks.run_grid --table                        # TABLE.md and PNGs from what exists
     python -m benchmarks.run_grid --table --longer benchmarks/results/long20k   # beside a longer budget
+    python -m benchmarks.run_grid --method iql ... --set reward_scale=return_range --results-dir DIR  # a baseline option
 
 Methods: ``tels`` (``recipes/tels_offline.py`` in a subprocess, its run folder
 kept at ``<work-dir>/tels/<task>/seed<k>`` and resumed if interrupted),
@@ -41,7 +42,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from benchmarks.baselines import MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
+from benchmarks.baselines import HYPERPARAMETERS, MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
 from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
                                 skip_existing, write_result)
 from torchrl_tels.training import write_text
@@ -119,6 +120,7 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
         cmd.append(f"--device={args.device}")
     if args.threads:
         cmd.append(f"--threads={args.threads}")
+    cmd += [f"--set={key}={value}" for key, value in args.set.items()]
     return cmd
 
 
@@ -210,7 +212,7 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
             eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, eval_batched=args.eval_batched,
             threads=args.threads, device=args.device,
             tsidm_path=tsidm_path, log_fn=logger.log_scalars if logger else None,
-            hyperparameters=MAZE_HYPERPARAMETERS.get(method) if is_maze(task) else None,
+            hyperparameters={**(MAZE_HYPERPARAMETERS.get(method, {}) if is_maze(task) else {}), **args.set},
         )
         if method == "iql_latent":
             results["tsidm"]["source"] = source
@@ -648,6 +650,25 @@ def _split(values: list[str] | None) -> list[str] | None:
     return [v for value in values for v in value.split(",") if v]
 
 
+def _hyperparameters(parser, pairs: list[str], methods) -> dict:
+    """``--set KEY=VALUE`` pairs as a dict (values read as YAML), each key a hyperparameter of every
+    baseline among ``methods``; TELS takes the recipe's overrides instead."""
+    chosen = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            parser.error(f"--set takes KEY=VALUE, got {pair!r}")
+        chosen[key] = yaml.safe_load(value)
+    if chosen:
+        if any(m not in BASELINES for m in methods):
+            parser.error("--set applies to the baselines only; give --method among " + ", ".join(BASELINES))
+        for method in methods:
+            unknown = sorted(set(chosen) - set(HYPERPARAMETERS[method]))
+            if unknown:
+                parser.error(f"--set: {method} has no hyperparameter(s) {unknown}")
+    return chosen
+
+
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -674,6 +695,9 @@ def parse_args(argv=None):
     parser.add_argument("--results-dir", "--results_dir", type=Path, default=DEFAULT_RESULTS)
     parser.add_argument("--work-dir", "--work_dir", type=Path, default=DEFAULT_WORK,
                         help="TELS run folders, TS-IDM files, wandb logs (default: runs/benchmarks)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a baseline hyperparameter (benchmarks/baselines.py), e.g. reward_scale=return_range; "
+                             "recorded in the result, so give such runs their own --results-dir (repeatable)")
     parser.add_argument("--force", action="store_true", help="redo runs whose result exists")
     parser.add_argument("--wandb-mode", "--wandb_mode", choices=("online", "offline", "disabled"),
                         default="online" if os.environ.get("WANDB_SWEEP_ID") else "disabled",
@@ -704,6 +728,7 @@ def parse_args(argv=None):
         parser.error("--steps, --tsidm-steps, --eval-interval and --eval-episodes must be positive")
     if args.threads is not None and args.threads < 1:
         parser.error("--threads must be positive")
+    args.set = _hyperparameters(parser, args.set, args.method or GRID_METHODS)
     args.results_dir, args.work_dir = args.results_dir.resolve(), args.work_dir.resolve()
     args.longer = [folder.resolve() for folder in args.longer]
     missing = [str(folder) for folder in args.longer if not folder.is_dir()]
