@@ -47,6 +47,7 @@ the last ``eval_last_n`` (10) evaluations.
 from __future__ import annotations
 
 import copy
+import math
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -68,7 +69,8 @@ from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normali
 from torchrl_tels.config import resolve_device
 from torchrl_tels.training import FiniteWatch
 
-__all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "train_baseline"]
+__all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "check_reward_scale", "return_range_scale",
+           "train_baseline"]
 
 METHODS = ("iql", "td3bc", "bc", "iql_latent")
 
@@ -137,30 +139,45 @@ _OBS_NORM_EPS = 1e-3  # TD3+BC paper: std + 1e-3
 
 def return_range_scale(data: TensorDictBase) -> float:
     """The IQL paper's locomotion reward scale, ``1000 / (max R - min R)`` over the undiscounted returns R of
-    the dataset's episodes (the ``"episode"`` ids; a trailing partial episode counts as one)."""
+    the dataset's episodes (its ``"episode"`` ids; a trailing partial episode counts as one).
+
+    Pieces of a single transition are left out: they are not trajectories, and a one-step "return" near 0
+    would set the minimum (the shared halfcheetah 10k file splits each episode into 998 steps and 1 step,
+    where D4RL's own q-learning view has whole episodes).
+    """
+    if "episode" not in data.keys():
+        raise ValueError("reward_scale='return_range' needs the dataset's 'episode' ids, and this data has none.")
     episode = data["episode"].reshape(-1).long()
+    ids, lengths = episode.unique(return_counts=True)
     returns = torch.zeros(int(episode.max()) + 1, dtype=torch.float64).index_add_(
-        0, episode, data["next", "reward"].reshape(-1).double())[episode.unique()]
-    spread = float(returns.max() - returns.min())
+        0, episode, data["next", "reward"].reshape(-1).double())[ids[lengths > 1]]
+    spread = float(returns.max() - returns.min()) if len(returns) else 0.0
     if not spread > 0:
         raise ValueError(f"reward_scale='return_range' needs episodes with different returns; got {len(returns)} "
-                         "episode(s) with one return.")
+                         "episode(s) of more than one transition, all with one return.")
     return 1000.0 / spread
+
+
+def check_reward_scale(setting: Any, reward_bias: float = 0.0) -> None:
+    """Raises ``ValueError`` unless ``setting`` is a finite positive number or ``"return_range"``, applied
+    without a reward bias (the IQL paper rescales locomotion rewards and shifts AntMaze ones, never both)."""
+    number = isinstance(setting, (int, float)) and not isinstance(setting, bool)
+    if not (setting == "return_range" or (number and math.isfinite(setting) and setting > 0)):
+        raise ValueError(f"reward_scale must be a finite positive number or 'return_range', got {setting!r}.")
+    if setting != 1 and reward_bias:
+        raise ValueError(f"reward_scale={setting!r} with reward_bias={reward_bias}: the IQL paper rescales "
+                         "locomotion rewards and shifts maze rewards by -1, never both; set one.")
 
 
 def _scale_rewards(data: TensorDictBase, hp: dict[str, Any]) -> tuple[TensorDictBase, float]:
     """Rewards as the baseline trains on them, ``r * reward_scale + reward_bias``, and the scale used."""
-    setting = hp.get("reward_scale", 1.0)
-    if setting == "return_range":
-        scale = return_range_scale(data)
-    elif isinstance(setting, (int, float)) and not isinstance(setting, bool) and setting > 0:
-        scale = float(setting)
-    else:
-        raise ValueError(f"reward_scale must be a positive number or 'return_range', got {setting!r}.")
-    if scale == 1.0 and not hp.get("reward_bias"):
+    setting, bias = hp.get("reward_scale", 1.0), hp.get("reward_bias", 0.0)
+    check_reward_scale(setting, bias)
+    scale = return_range_scale(data) if setting == "return_range" else float(setting)
+    if scale == 1.0 and not bias:
         return data, scale
     data = data.clone()
-    data["next", "reward"] = data["next", "reward"] * scale + hp.get("reward_bias", 0.0)
+    data["next", "reward"] = data["next", "reward"] * scale + bias
     return data, scale
 
 
@@ -317,7 +334,8 @@ def train_baseline(
         A dict like the recipe's ``results.json``: ``final_normalized_score_mean``/``_std``
         (over the last ``eval_last_n`` evaluations), ``evaluations``, ``wall_time_s``,
         ``steps_per_s`` (``policy_excluding_eval`` leaves evaluation out), the
-        hyperparameters and the budget. With ``return_policy``, ``(results, actor, env)``.
+        hyperparameters and the budget; for IQL, ``reward_scale_applied``, the factor
+        ``reward_scale`` came to. With ``return_policy``, ``(results, actor, env)``.
     """
     if method not in _BUILDERS:
         raise ValueError(f"unknown baseline {method!r}; expected one of {', '.join(METHODS)}.")

@@ -42,7 +42,8 @@ from pathlib import Path
 import torch
 import yaml
 
-from benchmarks.baselines import HYPERPARAMETERS, MAZE_HYPERPARAMETERS, METHODS as BASELINES, train_baseline
+from benchmarks.baselines import (check_reward_scale, HYPERPARAMETERS, MAZE_HYPERPARAMETERS, METHODS as BASELINES,
+                                  train_baseline)
 from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
                                 skip_existing, write_result)
 from torchrl_tels.training import write_text
@@ -120,7 +121,8 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
         cmd.append(f"--device={args.device}")
     if args.threads:
         cmd.append(f"--threads={args.threads}")
-    cmd += [f"--set={key}={value}" for key, value in args.set.items()]
+    # JSON reads back as YAML with the same value and type (str() would turn 1e-05 and None into strings)
+    cmd += [f"--set={key}={value if isinstance(value, str) else json.dumps(value)}" for key, value in args.set.items()]
     return cmd
 
 
@@ -650,22 +652,39 @@ def _split(values: list[str] | None) -> list[str] | None:
     return [v for value in values for v in value.split(",") if v]
 
 
-def _hyperparameters(parser, pairs: list[str], methods) -> dict:
-    """``--set KEY=VALUE`` pairs as a dict (values read as YAML), each key a hyperparameter of every
-    baseline among ``methods``; TELS takes the recipe's overrides instead."""
+def _parse_set_pairs(parser, pairs: list[str], methods, results_dir: Path) -> dict:
+    """``--set KEY=VALUE`` pairs as a dict, each key a hyperparameter of every baseline among ``methods`` and
+    each value read as YAML, then as a number where the default is one (YAML reads ``3e-4`` as a string)."""
     chosen = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             parser.error(f"--set takes KEY=VALUE, got {pair!r}")
         chosen[key] = yaml.safe_load(value)
-    if chosen:
-        if any(m not in BASELINES for m in methods):
-            parser.error("--set applies to the baselines only; give --method among " + ", ".join(BASELINES))
-        for method in methods:
-            unknown = sorted(set(chosen) - set(HYPERPARAMETERS[method]))
-            if unknown:
-                parser.error(f"--set: {method} has no hyperparameter(s) {unknown}")
+    if not chosen:
+        return chosen
+    if any(m not in BASELINES for m in methods):
+        parser.error("--set applies to the baselines only; give --method among " + ", ".join(BASELINES))
+    if results_dir == DEFAULT_RESULTS.resolve():
+        parser.error("--set changes a baseline, so its runs need their own --results-dir (a result that exists "
+                     "is skipped whatever its hyperparameters)")
+    for method in methods:
+        unknown = sorted(set(chosen) - set(HYPERPARAMETERS[method]))
+        if unknown:
+            parser.error(f"--set: {method} has no hyperparameter(s) {unknown}")
+    defaults = {key: HYPERPARAMETERS[methods[0]][key] for key in chosen}
+    for key, value in chosen.items():
+        numeric_default = isinstance(defaults[key], (int, float)) and not isinstance(defaults[key], bool)
+        if numeric_default and isinstance(value, str):
+            try:
+                chosen[key] = float(value)
+            except ValueError:
+                pass
+    if "reward_scale" in chosen:
+        try:
+            check_reward_scale(chosen["reward_scale"])
+        except ValueError as err:
+            parser.error(f"--set: {err}")
     return chosen
 
 
@@ -728,7 +747,9 @@ def parse_args(argv=None):
         parser.error("--steps, --tsidm-steps, --eval-interval and --eval-episodes must be positive")
     if args.threads is not None and args.threads < 1:
         parser.error("--threads must be positive")
-    args.set = _hyperparameters(parser, args.set, args.method or GRID_METHODS)
+    args.set = _parse_set_pairs(parser, args.set, args.method or GRID_METHODS, args.results_dir.resolve())
+    if args.set.get("reward_scale", 1) != 1 and any(is_maze(t) for t in args.task or []):
+        parser.error("--set reward_scale applies to locomotion sets; mazes take the IQL paper's r - 1 instead")
     args.results_dir, args.work_dir = args.results_dir.resolve(), args.work_dir.resolve()
     args.longer = [folder.resolve() for folder in args.longer]
     missing = [str(folder) for folder in args.longer if not folder.is_dir()]

@@ -17,7 +17,7 @@ def _episodes(rewards: list[list[float]]) -> TensorDict:
 
 def test_return_range_scale_is_1000_over_the_spread_of_episode_returns():
     # returns 6, -1 and 10.5: the spread is 11.5
-    data = _episodes([[1.0, 2.0, 3.0], [-1.0], [10.0, 0.5]])
+    data = _episodes([[1.0, 2.0, 3.0], [-1.0, 0.0], [10.0, 0.5]])
     assert baselines.return_range_scale(data) == pytest.approx(1000.0 / 11.5)
     # episode ids need not be contiguous
     data["episode"] = data["episode"] * 7 + 3
@@ -34,29 +34,78 @@ def test_return_range_scale_of_a_shared_set_matches_a_loop_over_its_episodes():
 
 
 def test_rewards_are_scaled_then_shifted_and_bad_settings_are_refused():
-    data = _episodes([[1.0, 2.0], [4.0]])
-    scaled, scale = baselines._scale_rewards(data, {"reward_scale": "return_range", "reward_bias": -1.0})
+    data = _episodes([[1.0, 2.0], [4.0, 0.0]])  # returns 3 and 4
+    scaled, scale = baselines._scale_rewards(data, {"reward_scale": "return_range", "reward_bias": 0.0})
     assert scale == pytest.approx(1000.0)
-    torch.testing.assert_close(scaled["next", "reward"], data["next", "reward"] * 1000.0 - 1.0)
+    torch.testing.assert_close(scaled["next", "reward"], data["next", "reward"] * 1000.0)
     assert scaled is not data and data["next", "reward"][0].item() == 1.0  # the caller's data is left alone
+    shifted, scale = baselines._scale_rewards(data, {"reward_scale": 1.0, "reward_bias": -1.0})
+    torch.testing.assert_close(shifted["next", "reward"], data["next", "reward"] - 1.0)
     same, scale = baselines._scale_rewards(data, {"reward_scale": 1.0, "reward_bias": 0.0})
     assert same is data and scale == 1.0
-    for bad in (0, -2.0, "returns", True):
+    for bad in (0, -2.0, float("inf"), "returns", True):
         with pytest.raises(ValueError, match="reward_scale must be"):
             baselines._scale_rewards(data, {"reward_scale": bad})
     with pytest.raises(ValueError, match="different returns"):
-        baselines._scale_rewards(_episodes([[1.0], [1.0]]), {"reward_scale": "return_range"})
+        baselines._scale_rewards(_episodes([[1.0, 0.0], [0.5, 0.5]]), {"reward_scale": "return_range"})
+    with pytest.raises(ValueError, match="never both"):
+        baselines._scale_rewards(data, {"reward_scale": 2.0, "reward_bias": -1.0})
+    with pytest.raises(ValueError, match="'episode' ids"):
+        baselines.return_range_scale(data.exclude("episode"))
 
 
-def test_run_grid_set_reads_values_as_yaml_and_names_bad_keys(capsys):
-    task = "hopper-medium-v2-10k"
+def test_one_transition_pieces_do_not_set_the_return_range():
+    # the middle piece is a lone transition with return -50; without it the spread is 12 - 2
+    data = _episodes([[1.0, 1.0], [-50.0], [6.0, 6.0]])
+    assert baselines.return_range_scale(data) == pytest.approx(100.0)
+
+
+def test_halfcheetah_scale_spans_whole_episodes():
+    # the shared halfcheetah 10k file holds 998-step episodes, each followed by a one-step piece
+    data = load_dataset("halfcheetah-medium-v2-10k")
+    episode = data["episode"]
+    long_returns = [data["next", "reward"][episode == e].sum().item() for e in episode.unique()
+                    if (episode == e).sum() > 1]
+    assert len(long_returns) >= 5 and min(long_returns) > 1000  # whole episodes of a medium policy
+    expected = 1000.0 / (max(long_returns) - min(long_returns))
+    assert baselines.return_range_scale(data) == pytest.approx(expected, rel=1e-6)
+
+
+def test_run_grid_set_reads_values_as_yaml_and_names_bad_keys(tmp_path, capsys):
+    task, own = "hopper-medium-v2-10k", ["--results-dir", str(tmp_path)]
     args = run_grid.parse_args(["--method", "iql", "--task", task, "--seed", "0", "--set", "reward_scale=return_range",
-                                "--set", "temperature=10"])
-    assert args.set == {"reward_scale": "return_range", "temperature": 10}
-    assert "--set=reward_scale=return_range" in run_grid.one_command(args, "iql", task, 0)
-    for argv, message in ((["--method", "bc", "--set", "expectile=0.9"], "bc has no hyperparameter(s) ['expectile']"),
-                          (["--method", "tels", "--set", "lr=1"], "--set applies to the baselines only"),
-                          (["--method", "iql", "--set", "expectile"], "--set takes KEY=VALUE")):
+                                "--set", "temperature=10", "--set", "lr=3e-4", *own])
+    assert args.set == {"reward_scale": "return_range", "temperature": 10, "lr": 3e-4}
+    command = run_grid.one_command(args, "iql", task, 0)
+    assert "--set=reward_scale=return_range" in command
+    # the command a result records gives the same values back
+    again = run_grid.parse_args(command[3:])
+    assert again.set == args.set and isinstance(again.set["lr"], float)
+    for argv, message in ((["--method", "bc", "--set", "expectile=0.9", *own], "bc has no hyperparameter(s) ['expectile']"),
+                          (["--method", "tels", "--set", "lr=1", *own], "--set applies to the baselines only"),
+                          (["--method", "iql", "--set", "expectile", *own], "--set takes KEY=VALUE"),
+                          (["--method", "iql", "--set", "reward_scale=0", *own], "finite positive number"),
+                          (["--method", "iql", "--set", "lr=1"], "need their own --results-dir")):
         with pytest.raises(SystemExit):
             run_grid.parse_args([*argv, "--task", task, "--seed", "0"])
         assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        run_grid.parse_args(["--method", "iql", "--task", "antmaze-umaze-v0-10k", "--seed", "0",
+                             "--set", "reward_scale=return_range", *own])
+    assert "mazes take the IQL paper's r - 1" in capsys.readouterr().err
+
+
+def test_run_one_hands_the_set_values_to_the_baseline_over_the_maze_ones(tmp_path, monkeypatch):
+    received = {}
+
+    def fake_train_baseline(method, task, **kwargs):
+        received[task] = kwargs["hyperparameters"]
+        return {"final_normalized_score_mean": 0.0, "torch_threads": 1, "budget": {}}
+
+    monkeypatch.setattr(run_grid, "train_baseline", fake_train_baseline)
+    for task in ("hopper-medium-v2-10k", "antmaze-umaze-v0-10k"):
+        args = run_grid.parse_args(["--method", "iql", "--task", task, "--seed", "0", "--steps", "10",
+                                    "--set", "temperature=5", "--results-dir", str(tmp_path)])
+        run_grid.run_one("iql", task, 0, args)
+    assert received["hopper-medium-v2-10k"] == {"temperature": 5}
+    assert received["antmaze-umaze-v0-10k"] == {**baselines.MAZE_HYPERPARAMETERS["iql"], "temperature": 5}
