@@ -411,11 +411,16 @@ def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None
     from benchmarks import aggregate
 
     matrices = {LABELS[m]: score_matrix(found, m) for m in TABLE_COLUMNS}
-    for other in (longer or {}).values():
+    for longer_dir, longer_found in (longer or {}).items():
         for method in TABLE_COLUMNS:
-            steps = {r["budget"]["policy_steps"] for t in AGGREGATE_TASKS for r in other.get(t, {}).get(method, [])}
-            if len(steps) == 1:
-                matrices[f"{LABELS[method]} at {_steps_label(steps.pop())} steps"] = score_matrix(other, method)
+            steps = {r["budget"]["policy_steps"]
+                     for t in AGGREGATE_TASKS for r in longer_found.get(t, {}).get(method, [])}
+            if not steps:
+                continue
+            label = f"{LABELS[method]} at " + " / ".join(_steps_label(n) for n in sorted(steps)) + " steps"
+            if label in matrices:  # two folders at one budget: say which is which
+                label += f" ({repo_relative(longer_dir)})"
+            matrices[label] = score_matrix(longer_found, method)
     matrices = {label: x for label, x in matrices.items() if x is not None}
     if not matrices:
         return []
@@ -489,35 +494,47 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
     ``--longer`` folders), with the longer curve's second-half slope and whether it is flat
     (:data:`FLAT_POINTS`): the budget a baseline needs before its score can be compared."""
     rows = []
-    for folder, other in longer.items():
-        for task in [t for t in tasks if t in other] + sorted(t for t in other if t not in tasks):
+    for folder, longer_found in longer.items():
+        for task in [t for t in tasks if t in longer_found] + sorted(t for t in longer_found if t not in tasks):
             for method in TABLE_COLUMNS:
-                runs = other[task].get(method, [])
-                if not runs:
+                longer_runs = longer_found[task].get(method, [])
+                if not longer_runs:
                     continue
-                here = found.get(task, {}).get(method, [])
-                fit = second_half_fit(runs)
+                runs_here = found.get(task, {}).get(method, [])
+                fit = second_half_fit(longer_runs)
                 if fit is None:
                     slope_cell, verdict = "—", "too few evaluations"
                 else:
                     late, _, slope = fit
-                    moves = slope * (late[-1] - late[0]) / 1000.0
-                    slope_cell = f"{slope:+.2f} ({moves:+.1f} across it)"
-                    verdict = "flat" if abs(moves) < FLAT_POINTS else ("**still rising**" if moves > 0
-                                                                       else "**still falling**")
-                rows.append(f"| {task} | {LABELS[method]} | {_budget_cell({method: here}) if here else '—'} | "
-                            f"{_score_cell(here)} | {_budget_cell({method: runs})} | {_score_cell(runs)} | "
-                            f"{slope_cell} | {verdict} | [{repo_relative(folder)}]({_link(folder, results_dir)}) |")
+                    rise_across_half = slope * (late[-1] - late[0]) / 1000.0
+                    slope_cell = f"{slope:+.2f} ({rise_across_half:+.1f} across it)"
+                    verdict = ("flat" if abs(rise_across_half) < FLAT_POINTS
+                               else "**still rising**" if rise_across_half > 0 else "**still falling**")
+                differ = _differing_hyperparameters(runs_here + longer_runs)
+                if differ:
+                    verdict += f"; **hyperparameters differ: {', '.join(differ)}**"
+                rows.append(f"| {task} | {LABELS[method]} | {_budget_cell({method: runs_here}) if runs_here else '—'} | "
+                            f"{_score_cell(runs_here)} | {_budget_cell({method: longer_runs})} | "
+                            f"{_score_cell(longer_runs)} | {slope_cell} | {verdict} | "
+                            f"[{repo_relative(folder)}]({_link(folder, results_dir)}) |")
     if not rows:
         return []
     return ["", "## Each method at this budget and at a longer one", "",
             "The same method, set and evaluation protocol at this table's budget and at a longer budget "
             "(`--longer` folders of `run_grid` results). The slope is that of a least-squares line through the "
             "second half of the longer run's seed-mean curve, per 1k steps, and how far that line moves across "
-            f"the half; *flat* means it moves less than {FLAT_POINTS:g} points. A baseline is compared at a "
-            "budget where it is flat.", "",
+            f"the half; *flat* means it moves less than {FLAT_POINTS:g} points. A score compares methods only "
+            "where the curve behind it is flat.", "",
             "| task | method | budget | score | longer budget | score | second half: slope per 1k | "
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
+
+
+def _differing_hyperparameters(runs: list[dict]) -> list[str]:
+    """The hyperparameter names whose values are not the same in every run (runs that record none are
+    left out), so a row never compares two settings unawares."""
+    recorded = [r["hyperparameters"] for r in runs if r.get("hyperparameters")]
+    return sorted({key for hp in recorded for key in hp if key != "source"
+                   and any(other.get(key) != hp[key] for other in recorded)})
 
 
 def _link(folder: Path, results_dir: Path) -> str:

@@ -17,11 +17,12 @@ from benchmarks import run_grid
 TASKS = run_grid.AGGREGATE_TASKS
 
 
-def _record(seed: int, steps: int, interval: int, curve) -> dict:
+def _record(seed: int, steps: int, interval: int, curve, **hyperparameters) -> dict:
     evaluations = [{"step": s, "score": float(curve(s))} for s in range(interval, steps + 1, interval)]
     final = float(np.mean([e["score"] for e in evaluations[-10:]]))
     return {"seed": seed, "final_normalized_score_mean": final, "evaluations": evaluations,
-            "budget": {"policy_steps": steps, "eval_interval": interval, "eval_episodes": 10}}
+            "budget": {"policy_steps": steps, "eval_interval": interval, "eval_episodes": 10},
+            "hyperparameters": {"lr": 3e-4, **hyperparameters}}
 
 
 def _write(folder, method, task, record):
@@ -33,12 +34,16 @@ def _write(folder, method, task, record):
 @pytest.fixture
 def grids(tmp_path):
     short, longer = tmp_path / "grid", tmp_path / "long20k"
-    for task in TASKS:
+    for i, task in enumerate(TASKS):
         for seed in (0, 1):
             _write(short, "bc", task, _record(seed, 5000, 500, lambda s: 30.0 + seed))
-            # BC flat at 20k (+0.1 per 1k); TD3+BC rising 1 point per 1k steps
-            _write(longer, "bc", task, _record(seed, 20000, 2000, lambda s: 40.0 + seed + 1e-4 * s))
+            # BC flat at 20k: seed 0 +0.2 per 1k, seed 1 flat; tasks 10 i² apart, so IQM and mean differ
+            _write(longer, "bc", task, _record(seed, 20000, 2000, lambda s: 10.0 * i**2 + seed + (1 - seed) * 2e-4 * s))
+            # TD3+BC rising 1 point per 1k steps, IQL falling 0.5 per 1k and at another learning rate
             _write(longer, "td3bc", task, _record(seed, 20000, 2000, lambda s: 10.0 + seed + 1e-3 * s))
+            _write(longer, "iql", task, _record(seed, 20000, 2000, lambda s: 40.0 - 5e-4 * s, lr=1e-3))
+            _write(short, "iql", task, _record(seed, 5000, 500, lambda s: 20.0))
+            _write(longer, "tels", task, _record(seed, 4000, 2000, lambda s: 1.0))  # two evaluations only
     return short, longer
 
 
@@ -56,14 +61,19 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     bc = _row(text, task, "BC")
     assert bc[2].startswith("5k steps") and bc[4].startswith("20k steps")
     assert bc[3] == "**30.5** ± 0.5 (n=2)"
-    # final score: mean of the last 10 of 10 evaluations (2k..20k) of 40 + seed + 1e-4 s, seed-mean +0.5
-    expected = 40.5 + 1e-4 * np.mean(np.arange(2000, 20001, 2000))
-    assert bc[5] == f"**{expected:.1f}** ± 0.5 (n=2)"
-    # second half: evaluations 12k..20k, slope 0.1 per 1k, 0.8 points across the 8k
+    # final score: mean of all 10 evaluations (2k..20k); seed 0 is 2e-4 s, seed 1 is 1
+    seed0 = 2e-4 * np.mean(np.arange(2000, 20001, 2000))
+    mean, std = np.mean([seed0, 1.0]), np.std([seed0, 1.0])
+    assert bc[5] == f"**{mean:.1f}** ± {std:.1f} (n=2)"
+    # second half: evaluations 12k..20k; the seed mean rises 0.1 per 1k, 0.8 points across the 8k
     assert bc[6] == "+0.10 (+0.8 across it)" and bc[7] == "flat"
     td3bc = _row(text, task, "TD3+BC")
     assert td3bc[2] == "—" and td3bc[3] == "—"
     assert td3bc[6] == "+1.00 (+8.0 across it)" and td3bc[7] == "**still rising**"
+    iql = _row(text, task, "IQL")
+    assert iql[6] == "-0.50 (-4.0 across it)"
+    assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
+    assert _row(text, task, "TELS")[6:8] == ["—", "too few evaluations"]
     assert bc[8].endswith("(../long20k/TABLE.md)")  # relative to grid/TABLE.md
 
 
@@ -73,10 +83,22 @@ def test_the_aggregate_gets_a_row_per_longer_budget(grids):
     row = next(line for line in text.splitlines() if line.startswith("| BC at 20k steps |"))
     scores = np.array([[json.loads(run_grid.result_path(longer, "bc", t, s).read_text())
                         ["final_normalized_score_mean"] for t in TASKS] for s in (0, 1)])
-    iqm = stats.trim_mean(scores.reshape(-1), 0.25)
-    assert re.search(rf"\| 2 × 4 \| \*\*{iqm:.1f}\*\* \[", row), (row, iqm)
+    iqm, mean = stats.trim_mean(scores.reshape(-1), 0.25), scores.mean()
+    assert abs(iqm - mean) > 1.0  # the check below can tell the two apart
+    assert re.search(rf"\| 2 × 4 \| \*\*{iqm:.1f}\*\* \[[^]]*\] \| \*\*{mean:.1f}\*\* \[", row), (row, iqm, mean)
     assert any(line.startswith("| BC | 2 × 4 | **30.5**") for line in text.splitlines())
     assert (short / "plots" / "aggregate.png").stat().st_size > 0
+
+
+def test_two_longer_folders_at_one_budget_keep_a_row_each(grids, tmp_path):
+    short, longer = grids
+    twin = tmp_path / "twin"
+    for task in TASKS:
+        for seed in (0, 1):
+            _write(twin, "bc", task, _record(seed, 20000, 2000, lambda s: 99.0))
+    lines = run_grid.render_table(short, (longer, twin)).read_text().splitlines()
+    rows = [line for line in lines if line.startswith("| BC at 20k steps")]
+    assert len(rows) == 2 and "**99.0**" in rows[1] and "twin" in rows[1] and "**99.0**" not in rows[0]
 
 
 def test_a_missing_longer_folder_is_one_clear_error(tmp_path, capsys):
