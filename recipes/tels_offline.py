@@ -45,6 +45,7 @@ from torchrl_tels.config import (  # noqa: E402
     resolve_threads,
     validate_config,
 )
+from torchrl_tels.diagnostics import action_chain_statistics  # noqa: E402
 from torchrl_tels.envs import make_eval_envs  # noqa: E402
 from torchrl_tels.errors import TelsError  # noqa: E402
 from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
@@ -155,7 +156,9 @@ def train(cfg: DictConfig) -> dict:
     save_guide_policy(run_dir / "policy.pt", stage2.guide, latent_dim=tsidm.latent_state_dim, mode=cfg.guide.mode,
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
                       metadata={"results": str(run_dir / "results.json")})
-    results = write_results(cfg, run, task, tsidm.metadata.get("beta"), stage2.latent_stats, run_dir,
+    # the trained chain's action error split between the TS-IDM and the guide, on the training data
+    diagnostics = {**stage2.latent_stats, **action_chain_statistics(stage2.actor, tsidm, data)}
+    results = write_results(cfg, run, task, tsidm.metadata.get("beta"), diagnostics, run_dir,
                             tsidm_steps=tsidm_steps(cfg, len(data)), policy_steps=cfg.policy.steps - start)
     run.stage, run.step = "done", cfg.policy.steps
     run.save(run_dir / "state.pt")
@@ -268,7 +271,8 @@ def train_seeds(cfg: DictConfig) -> dict:
         save_guide_policy(Path(c.run_dir) / "policy.pt", stage.guide, latent_dim=tsidm.latent_state_dim,
                           mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
                           metadata={"results": str(Path(c.run_dir) / "results.json")})
-        results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), stage.latent_stats,
+        diagnostics = {**stage.latent_stats, **action_chain_statistics(stage.actor, tsidm, data)}
+        results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), diagnostics,
                                      Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(data)),
                                      policy_steps=cfg.policy.steps - start))
     summary = write_seeds_summary(run_dir, seeds, results, run.wall)

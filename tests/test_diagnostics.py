@@ -1,12 +1,14 @@
 """The freeze diagnostic fires on a frozen actor and stays quiet on one that moves."""
 from __future__ import annotations
 
+import pytest
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
 from torchrl_tels.data import load_dataset
-from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
+from torchrl_tels.diagnostics import (action_chain_statistics, is_frozen, is_off_data, latent_statistics,
+                                      rollout_statistics)
 from torchrl_tels.envs import make_eval_env, rollout_episodes
 from torchrl_tels.modules import LATENT_KEY, GUIDE_KEY, make_tels_actor, TSIDM
 
@@ -77,3 +79,52 @@ def test_latent_statistics_match_a_direct_computation():
     rms = ((z - z.mean(0)) ** 2).sum(0).div(z.shape[0] - 1).mean().sqrt().item()
     assert abs(stats["latent_step_rms"] - step) < 1e-5 * step
     assert abs(stats["latent_rms"] - rms) < 1e-5 * rms
+
+
+class Doubling(nn.Module):
+    def forward(self, latent):
+        return 2 * latent
+
+
+class Oracle(nn.Module):
+    """A guide that looks each latent up in a table and proposes the data's own next latent."""
+
+    def __init__(self, latent: torch.Tensor, next_latent: torch.Tensor):
+        super().__init__()
+        self.register_buffer("latent", latent)
+        self.register_buffer("next_latent", next_latent)
+
+    def forward(self, latent):
+        return self.next_latent[torch.cdist(latent, self.latent).argmin(-1)]
+
+
+def test_action_chain_statistics_split_the_error_between_tsidm_and_guide():
+    torch.manual_seed(0)
+    data = load_dataset("hopper-medium-v2-10k")[:2000]
+    tsidm = TSIDM(11, 3, **SMALL).eval()
+    tsidm.fit_state_normalization(data["observation"])
+    moving = ~data["next", "terminated"].reshape(-1)
+    with torch.no_grad():
+        z, z_next = tsidm.encode_state(data["observation"]), tsidm.encode_state(data["next", "observation"])
+        inverse = tsidm.decode_action(tsidm.infer_latent_action(z, z_next))
+    expected_inverse = (inverse - data["action"])[moving].pow(2).mean().item()
+
+    # A guide proposing 2 z: its step is z itself, checked against a direct computation.
+    doubling = TensorDictModule(Doubling(), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
+    stats = action_chain_statistics(make_tels_actor(tsidm, doubling), tsidm, data)
+    with torch.no_grad():
+        acted = tsidm.decode_action(tsidm.infer_latent_action(z, 2 * z))
+    step, data_step = z[moving], (z_next - z)[moving]
+    assert stats["inverse_action_mse"] == pytest.approx(expected_inverse, rel=1e-5)
+    assert stats["actor_action_mse"] == pytest.approx((acted - data["action"])[moving].pow(2).mean().item(), rel=1e-5)
+    assert stats["guide_step_ratio"] == pytest.approx(
+        (step.pow(2).sum(-1).mean() / data_step.pow(2).sum(-1).mean()).sqrt().item(), rel=1e-5)
+    assert stats["guide_step_cosine"] == pytest.approx(
+        torch.nn.functional.cosine_similarity(step, data_step, dim=-1).mean().item(), rel=1e-5)
+
+    # A guide that proposes the data's next latent adds no error of its own.
+    oracle = TensorDictModule(Oracle(z, z_next), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
+    stats = action_chain_statistics(make_tels_actor(tsidm, oracle), tsidm, data)
+    assert stats["actor_action_mse"] == pytest.approx(stats["inverse_action_mse"], rel=1e-5)
+    assert stats["guide_step_ratio"] == pytest.approx(1.0, rel=1e-5)
+    assert stats["guide_step_cosine"] == pytest.approx(1.0, abs=1e-5)

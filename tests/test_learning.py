@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import statistics
 import time
 from pathlib import Path
@@ -126,6 +127,10 @@ def test_tels_beats_the_best_trajectory_in_its_data(tmp_path):
         f"(optimal {point_mass.OPTIMAL_RETURN:.2f})."
     )
     assert elapsed < TIME_LIMIT_S, f"the learning run took {elapsed:.0f} s, the budget is {TIME_LIMIT_S:.0f} s."
+    # results.json splits the trained chain's action error between the TS-IDM and the guide
+    chain = {k: results["diagnostics"][k] for k in ("inverse_action_mse", "actor_action_mse", "guide_step_ratio",
+                                                    "guide_step_cosine")}
+    assert all(math.isfinite(v) for v in chain.values()) and -1 <= chain["guide_step_cosine"] <= 1, chain
 
 
 def test_imitation_alone_does_not_beat_the_data(tmp_path):

@@ -98,13 +98,14 @@ class RunLogger:
                 self._drop_wandb(err)
 
 
-def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm_steps: int, policy_steps: int) -> dict:
+def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_steps: int, policy_steps: int) -> dict:
     """Writes ``results.json`` and the PNG plots of a finished run; returns the results.
 
     The score is the mean of the last ``eval.last_n`` evaluations (Table 1 reads
     the last 10 of 20); ``second_half_score_mean`` averages the later half of all
     evaluations. ``diagnostics`` holds what shows whether T-symmetry did
-    anything: the latent scale, the guide's T-symmetry share and proposed step.
+    anything: the latent scale, the guide's T-symmetry share and proposed step,
+    and the action error split between TS-IDM and guide (the given ``diagnostics``).
     ``monitor`` holds the consistency monitor's record of the final evaluation
     (fraction of flagged steps, threshold); its per-step scores are plotted in
     ``monitor_scores.png`` rather than stored.
@@ -137,7 +138,7 @@ def write_results(cfg, run, task, beta, latent_stats: Mapping, run_dir, *, tsidm
         "evaluations": evaluations,
         "monitor": monitor_summary,
         "diagnostics": {
-            **latent_stats,
+            **diagnostics,
             "tsidm_history": {k: v for k, v in run.tsidm_history.items() if k.startswith("latent")},
             "guide_history": {k: v for k, v in run.policy_history.items()
                               if k in ("guide/tsym_to_state_ratio", "guide/guide_step_rms", "guide/loss_tsym",
