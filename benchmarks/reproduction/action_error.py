@@ -14,8 +14,9 @@ own transitions into its parts:
 * ``bc``: an MLP fitted to (s, a) by MSE on the same transitions (torchrl MLP, 256x256, 5k Adam steps);
 
 and the guide's latent error ||π_g(z) - z'||² next to the size of the step
-||z' - z||² it has to predict. All errors are mean squared over action
-dimensions. A run trained on a ``dataset.size`` subset is also scored on the
+||z' - z||² it has to predict, with the size and direction of the step it proposes
+(``torchrl_tels.diagnostics.action_chain_statistics``). All errors are mean squared over action
+dimensions; ``acting`` names the prediction the actor acts with (``reencode`` or ``guide``). A run trained on a ``dataset.size`` subset is also scored on the
 transitions it never saw (``held_out``), which separates fit from generalization::
 
     python -m benchmarks.reproduction.action_error --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
@@ -36,6 +37,7 @@ from torchrl.modules import MLP
 
 from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
 from torchrl_tels.data import load_dataset, subset_dataset
+from torchrl_tels.diagnostics import action_chain_statistics
 from torchrl_tels.modules import TSIDM, load_tels_actor
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 
@@ -97,8 +99,10 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
         }
     predictions["bc"] = fit_bc(observation[train], action[train], bc_steps, seed, apply_to=observation)
     splits = {"train": train} if train.all() else {"train": train, "held_out": ~train}
-    record = {"dataset": config["dataset"]["name"], "transitions": {k: int(m.sum()) for k, m in splits.items()}}
+    record = {"dataset": config["dataset"]["name"], "transitions": {k: int(m.sum()) for k, m in splits.items()},
+              "acting": "reencode" if config["guide"].get("reencode_proposal") else "guide"}
     for split, rows in splits.items():
+        chain = action_chain_statistics(actor, tsidm, data[rows])
         step = (z_next[rows] - z[rows]).pow(2).sum(-1).mean()
         guide_error = (proposal[rows] - z_next[rows]).pow(2).sum(-1).mean()
         record[split] = {
@@ -106,6 +110,8 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
             "latent_step_sq": step.item(),
             "guide_latent_error_sq": guide_error.item(),
             "guide_error_over_step": (guide_error / step).item(),
+            "guide_step_ratio": chain["guide_step_ratio"],
+            "guide_step_cosine": chain["guide_step_cosine"],
         }
     return record
 
