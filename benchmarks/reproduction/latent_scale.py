@@ -190,8 +190,42 @@ def aggregate_table(arms=ARMS) -> list[str]:
             "", "| arm | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|", *rows, ""]
 
 
+#: Arms whose saved runs ``action_error`` read (results/action_error/<folder>-<task>-seed<k>.json).
+ACTION_ERROR_ARMS = (("standardized", "scale_standardized"), ("relative", "scale_relative"),
+                     ("standardized, guide ℓ_Tsym ×50", "scale_standardized_tsym50"),
+                     ("TSRL-style weighting", "tsrl_weighting"), ("`ae`, guide ℓ_Tsym off", "tsidm_ae_reencode_notsym"))
+
+
+def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0])) -> list[str]:
+    """Where each arm's action error comes from, per seed (``python -m benchmarks.reproduction.action_error``)."""
+    folder = summary.HERE / "results" / "action_error"
+    rows = []
+    for task in tasks:
+        for label, arm in arms:
+            for path in sorted(folder.glob(f"{arm}-{task}-seed*.json")):
+                record = json.loads(path.read_text())
+                seed = int(path.stem.rsplit("seed", 1)[1])
+                run = summary.seed_results(summary.HERE / "results" / arm / task, lambda r: True).get(seed)
+                train = record["train"]
+                mse = train["action_mse"]
+                rows.append(f"| {task} | {label} | {seed} | {run['final_normalized_score_mean']:.1f} | "
+                            f"{mse['oracle']:.4f} | {mse[record['acting']]:.4f} | {mse['bc']:.4f} | "
+                            f"{train['guide_step_ratio']:.2f} | {train['guide_step_cosine']:.2f} |"
+                            if run else f"| {task} | {label} | {seed} | (no result) | | | | | |")
+    if not rows:
+        return []
+    return ["Where the action error comes from, on each run's own training transitions "
+            "(`python -m benchmarks.reproduction.action_error --run-dir <run> --name <arm>-<task>-seed<k>` on the saved "
+            "runs): mean squared action error of Eq. (11) fed the true next latent (the TS-IDM's part), of the actor "
+            "as it acts (guide proposal, re-encoded where the arm re-encodes), and of BC fitted by MSE on the same "
+            "transitions (5k steps); then the guide's proposed latent step over the data's (RMS) and the mean "
+            "cosine between the two steps:", "",
+            "| task | arm | seed | score | ψ_a(h_inv(z, z')) | actor | BC | proposed / data step | cosine |",
+            "|---|---|---|---|---|---|---|---|---|", *rows, ""]
+
+
 def report() -> str:
-    lines = shrink_table() + aggregate_table() + untangle_table()
+    lines = shrink_table() + aggregate_table() + untangle_table() + action_error_table()
     for task in summary.TASKS:
         lines += task_table(task)
     task, arms = HELD_OUT
