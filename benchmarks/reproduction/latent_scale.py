@@ -193,7 +193,9 @@ def aggregate_table(arms=ARMS) -> list[str]:
 #: Arms whose saved runs ``action_error`` read (results/action_error/<folder>-<task>-seed<k>.json).
 ACTION_ERROR_ARMS = (("standardized", "scale_standardized"), ("relative", "scale_relative"),
                      ("standardized, guide ℓ_Tsym ×50", "scale_standardized_tsym50"),
-                     ("TSRL-style weighting", "tsrl_weighting"), ("`ae`, guide ℓ_Tsym off", "tsidm_ae_reencode_notsym"))
+                     ("TSRL-style weighting", "tsrl_weighting"), ("`ae`, guide ℓ_Tsym off", "tsidm_ae_reencode_notsym"),
+                     ("preset", "heldout_preset"), ("standardized", "heldout_standardized"),
+                     ("standardized, guide ℓ_Tsym ×50", "heldout_standardized_tsym50"))
 
 
 def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0])) -> list[str]:
