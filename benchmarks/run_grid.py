@@ -296,6 +296,21 @@ def _budget_cell(by_method: dict) -> str:
     return text
 
 
+def _changed_hyperparameters(found: dict) -> list[str]:
+    """A line naming each baseline hyperparameter that differs from ``benchmarks/baselines.py``'s default for
+    its task (e.g. from ``--set``), so a table of changed baselines says so; nothing when none differ."""
+    changed = set()
+    for task, by_method in found.items():
+        for method in BASELINES:
+            default = {**HYPERPARAMETERS[method], **(MAZE_HYPERPARAMETERS.get(method, {}) if is_maze(task) else {})}
+            for run in by_method.get(method, []):
+                changed |= {f"{LABELS[method]} `{key}={value}`" for key, value in run.get("hyperparameters", {}).items()
+                            if key != "source" and key in default and default[key] != value}
+    if not changed:
+        return []
+    return [f"**Changed from the baselines' defaults:** {', '.join(sorted(changed))}.", ""]
+
+
 def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     """``results_dir``/TABLE.md and its PNGs; ``longer_dirs`` hold the same grid at longer budgets."""
     found = load_results(results_dir)
@@ -312,6 +327,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         "the TELS paper's Table 1 value (mean ± std over 5 seeds, 100k policy steps). "
         "Every method of a row has the same data, evaluation env, protocol and policy-step budget.",
         "",
+        *_changed_hyperparameters(found),
         "| task | budget | " + " | ".join(LABELS[m] for m in TABLE_COLUMNS) + " | TSRL (paper) |",
         "|---|---|" + "---|" * (len(TABLE_COLUMNS) + 1),
     ]
@@ -530,11 +546,11 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
 
 
 def _differing_hyperparameters(runs: list[dict]) -> list[str]:
-    """The hyperparameter names whose values are not the same in every run (runs that record none are
-    left out), so a row never compares two settings unawares."""
+    """The hyperparameter names whose values are not the same in every run that records them (a name an
+    older run does not record is not a difference), so a row never compares two settings unawares."""
     recorded = [r["hyperparameters"] for r in runs if r.get("hyperparameters")]
     return sorted({key for hp in recorded for key in hp if key != "source"
-                   and any(other.get(key) != hp[key] for other in recorded)})
+                   and any(key in other and other[key] != hp[key] for other in recorded)})
 
 
 def _link(folder: Path, results_dir: Path) -> str:

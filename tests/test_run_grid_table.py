@@ -74,6 +74,9 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     assert iql[6] == "-0.50 (-4.0 across it)"
     assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
     assert _row(text, task, "TELS")[6:8] == ["—", "too few evaluations"]
+    # a name only some runs record (an older run's) is no difference
+    assert run_grid._differing_hyperparameters([{"hyperparameters": {"lr": 1, "new": 0}},
+                                                {"hyperparameters": {"lr": 1}}]) == []
     assert bc[8].endswith("(../long20k/TABLE.md)")  # relative to grid/TABLE.md
 
 
@@ -108,3 +111,12 @@ def test_a_missing_longer_folder_is_one_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         run_grid.parse_args(["--method", "bc", "--task", TASKS[0], "--seed", "0", "--longer", str(tmp_path)])
     assert "--longer only applies to --table" in capsys.readouterr().err
+
+
+def test_a_table_of_changed_baselines_names_the_change(grids):
+    short, _ = grids
+    assert "Changed from the baselines' defaults" not in run_grid.render_table(short).read_text()
+    for seed in (0, 1):
+        _write(short, "iql", TASKS[1], _record(seed, 5000, 500, lambda s: 20.0, reward_scale="return_range"))
+    text = run_grid.render_table(short).read_text()
+    assert "**Changed from the baselines' defaults:** IQL `reward_scale=return_range`." in text
