@@ -226,8 +226,34 @@ def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0
             "|---|---|---|---|---|---|---|---|---|", *rows, ""]
 
 
+def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
+    """The runs whose proposals left the data's step scale, re-evaluated with the step capped
+    (``python -m benchmarks.reproduction.proposal_cap``)."""
+    folder = summary.HERE / "results" / "proposal_cap"
+    labels = dict((arm, label) for label, arm in arms)
+    rows, caps = [], []
+    records = {path.stem: json.loads(path.read_text()) for path in sorted(folder.glob("*.json"))}
+    for record in records.values():
+        caps += [name for name in record["scores"] if name not in caps]
+    for name, record in records.items():
+        arm, task_seed = name.split("-", 1)
+        task, seed = task_seed.rsplit("-seed", 1)
+        error_path = summary.HERE / "results" / "action_error" / f"{name}.json"
+        ratio = json.loads(error_path.read_text())["train"]["guide_step_ratio"] if error_path.exists() else None
+        cells = [f"{record['scores'][c]:.1f}" if c in record["scores"] else "—" for c in caps]
+        rows.append(f"| {task} | {labels.get(arm, arm)} | {seed} | {'—' if ratio is None else f'{ratio:.2f}'} | "
+                    f"{' | '.join(cells)} |")
+    if not rows:
+        return []
+    return ["The same saved runs re-evaluated with the guide's proposed step capped at k times the data's RMS latent "
+            "step (`python -m benchmarks.reproduction.proposal_cap --run-dir <run> --name <arm>-<task>-seed<k>`; no "
+            "training; ten episodes per reading, the same episodes for every cap):", "",
+            "| task | arm | seed | proposed / data step | " + " | ".join(caps) + " |",
+            "|---|---|---|---|" + "---|" * len(caps), *rows, ""]
+
+
 def report() -> str:
-    lines = shrink_table() + aggregate_table() + untangle_table() + action_error_table()
+    lines = shrink_table() + aggregate_table() + untangle_table() + action_error_table() + proposal_cap_table()
     for task in summary.TASKS:
         lines += task_table(task)
     task, arms = HELD_OUT

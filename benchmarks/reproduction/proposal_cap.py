@@ -1,0 +1,105 @@
+"""Does capping the guide's proposed latent step rescue a run whose proposals leave the data's step scale?
+
+    python -m benchmarks.reproduction.proposal_cap --run-dir <run> --name <arm>-<task>-seed<k> --caps 1 2
+
+re-evaluates a finished recipe run (``config.yaml``, ``tsidm.pt``, ``policy.pt``, ``results.json``) with its own actor
+options, once as trained and once per cap k with the guide's step π_g(z) - z scaled down, per state, to at
+most k times the RMS latent step √E‖φ_s(s') - φ_s(s)‖² of its training data (no training). Each reading is ten
+deterministic episodes, seeded alike for every cap. If proposals far off the data's step scale (the
+``proposed / data step`` column of the action-error table) caused a run's low score, a cap would lift it.
+Writes ``benchmarks/reproduction/results/proposal_cap/<name>.json`` (skipped if it exists unless ``--force``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+import yaml
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.reproduction.action_error import training_rows
+from torchrl_tels.checkpoint import load_checkpoint
+from torchrl_tels.data import load_dataset
+from torchrl_tels.diagnostics import latent_statistics
+from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normalized_score
+from torchrl_tels.modules import load_tels_actor, make_tels_actor, TSIDM
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY, POLICY_FORMAT
+
+EPISODES = 10
+
+
+class CappedStep(nn.Module):
+    """The guide with its proposed step z' - z scaled down to at most ``max_step`` in norm."""
+
+    def __init__(self, guide: nn.Module, max_step: float):
+        super().__init__()
+        self.guide, self.max_step = guide, max_step
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        step = self.guide(latent) - latent
+        shrink = (self.max_step / step.norm(dim=-1, keepdim=True).clamp_min(1e-12)).clamp(max=1.0)
+        return latent + step * shrink
+
+
+def capped_scores(run_dir: Path, caps: list[float]) -> dict:
+    results = json.loads((run_dir / "results.json").read_text())
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    data = load_dataset(config["dataset"]["name"])
+    data, task = data[training_rows(data, config["dataset"], config["seed"])], get_task(results["task"])
+    tsidm = TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
+                       action_dim=data["action"].shape[-1]).eval()
+    data_step = latent_statistics(tsidm, data["observation"], data["next", "observation"])["latent_step_rms"]
+    env = make_eval_envs(task.env_id, EPISODES)
+    spec = env.action_spec_unbatched
+    trained = load_tels_actor(run_dir / "policy.pt", tsidm, spec)
+    payload = load_checkpoint(run_dir / "policy.pt", POLICY_FORMAT)
+    if payload["mode"] != "deterministic":
+        raise SystemExit(f"error: {run_dir} has a {payload['mode']} guide; the cap applies to a deterministic one")
+    guide, options = trained[1].module, payload.get("actor_options", {})
+    seed = results["seed"] * 100_000 + 1  # one fixed set of episodes, not any training evaluation's
+    scores = {}
+    for cap in [None, *caps]:
+        module = guide if cap is None else CappedStep(guide, cap * data_step)
+        actor = make_tels_actor(tsidm, TensorDictModule(module, in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY]), spec,
+                                **options)
+        with torch.no_grad():
+            returns = evaluate_policy(actor, env, EPISODES, seed=seed)
+        scores["as trained" if cap is None else f"cap {cap:g}"] = float(
+            normalized_score(task, torch.tensor(returns)).mean())
+    return {"dataset": results["dataset"], "final_score": results["final_normalized_score_mean"],
+            "data_step_rms": data_step, "episodes": EPISODES, "scores": scores}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dir", type=Path, required=True, help="a finished recipe run")
+    parser.add_argument("--name", required=True, help="results land in results/proposal_cap/<name>.json")
+    parser.add_argument("--caps", type=float, nargs="+", default=[1.0, 2.0],
+                        help="caps on the proposed step, in multiples of the data's RMS latent step")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
+    args = parser.parse_args(argv)
+    if any(cap <= 0 for cap in args.caps):
+        parser.error("--caps must be positive")
+    for required in ("config.yaml", "results.json", "tsidm.pt", "policy.pt"):
+        if not (args.run_dir / required).exists():
+            parser.error(f"{args.run_dir / required} is missing: pass a finished run folder")
+    torch.set_num_threads(args.threads)
+    out = REPO / "benchmarks" / "reproduction" / "results" / "proposal_cap" / f"{args.name}.json"
+    if skip_existing(out, args.force):
+        return
+    record = capped_scores(args.run_dir, args.caps)
+    record.update(run_dir=str(args.run_dir), command=invocation(),
+                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  machine={**machine_description(), "threads": args.threads})
+    print(", ".join(f"{name} {score:.1f}" for name, score in record["scores"].items()))
+    write_result(out, record, args.force)
+
+
+if __name__ == "__main__":
+    main()
