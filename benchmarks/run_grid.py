@@ -302,7 +302,7 @@ def _changed_hyperparameters(found: dict) -> list[str]:
     changed = set()
     for task, by_method in found.items():
         for method in BASELINES:
-            default = {**HYPERPARAMETERS[method], **(MAZE_HYPERPARAMETERS.get(method, {}) if is_maze(task) else {})}
+            default = _baseline_defaults(method, task)
             for run in by_method.get(method, []):
                 changed |= {f"{LABELS[method]} `{key}={value}`" for key, value in run.get("hyperparameters", {}).items()
                             if key != "source" and key in default and default[key] != value}
@@ -526,7 +526,7 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
                     slope_cell = f"{slope:+.2f} ({rise_across_half:+.1f} across it)"
                     verdict = ("flat" if abs(rise_across_half) < FLAT_POINTS
                                else "**still rising**" if rise_across_half > 0 else "**still falling**")
-                differ = _differing_hyperparameters(runs_here + longer_runs)
+                differ = _differing_hyperparameters(runs_here + longer_runs, method, task)
                 if differ:
                     verdict += f"; **hyperparameters differ: {', '.join(differ)}**"
                 rows.append(f"| {task} | {LABELS[method]} | {_budget_cell({method: runs_here}) if runs_here else '—'} | "
@@ -545,12 +545,20 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
 
 
-def _differing_hyperparameters(runs: list[dict]) -> list[str]:
-    """The hyperparameter names whose values are not the same in every run that records them (a name an
-    older run does not record is not a difference), so a row never compares two settings unawares."""
-    recorded = [r["hyperparameters"] for r in runs if r.get("hyperparameters")]
+def _differing_hyperparameters(runs: list[dict], method: str, task: str) -> list[str]:
+    """The hyperparameter names whose values are not the same in every run, a name a run does not record
+    read as the baselines' default for the task, so a row never compares two settings unawares."""
+    defaults = _baseline_defaults(method, task)
+    recorded = [{**defaults, **r["hyperparameters"]} for r in runs if r.get("hyperparameters")]
     return sorted({key for hp in recorded for key in hp if key != "source"
-                   and any(key in other and other[key] != hp[key] for other in recorded)})
+                   and any(other.get(key) != hp[key] for other in recorded)})
+
+
+def _baseline_defaults(method: str, task: str) -> dict:
+    """``benchmarks/baselines.py``'s hyperparameters for ``method`` on ``task`` (none for TELS)."""
+    if method not in BASELINES:
+        return {}
+    return {**HYPERPARAMETERS[method], **(MAZE_HYPERPARAMETERS.get(method, {}) if is_maze(task) else {})}
 
 
 def _link(folder: Path, results_dir: Path) -> str:

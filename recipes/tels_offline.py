@@ -156,8 +156,8 @@ def train(cfg: DictConfig) -> dict:
     save_guide_policy(run_dir / "policy.pt", stage2.guide, latent_dim=tsidm.latent_state_dim, mode=cfg.guide.mode,
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
                       metadata={"results": str(run_dir / "results.json")})
-    # the trained chain's action error split between the TS-IDM and the guide, on the training data
-    diagnostics = {**stage2.latent_stats, **action_chain_statistics(stage2.actor, tsidm, data)}
+    # Stored with the score: a low score with a low inverse error points at the guide, a high one at the TS-IDM.
+    diagnostics = {**stage2.latent_stats, **action_chain_statistics(stage2.actor, data)}
     results = write_results(cfg, run, task, tsidm.metadata.get("beta"), diagnostics, run_dir,
                             tsidm_steps=tsidm_steps(cfg, len(data)), policy_steps=cfg.policy.steps - start)
     run.stage, run.step = "done", cfg.policy.steps
@@ -266,12 +266,13 @@ def train_seeds(cfg: DictConfig) -> dict:
     stage2.check_finite()
     stage2.write_back()
     results = []
-    for c, data, stage, seed_run, tsidm in zip(configs, datas, stages, seed_runs, tsidms):
+    for k, (c, data, stage, seed_run, tsidm) in enumerate(zip(configs, datas, stages, seed_runs, tsidms)):
         seed_run.wall.update({key: run.wall.get(key, 0.0) for key in ("policy_s", "eval_s")})
         save_guide_policy(Path(c.run_dir) / "policy.pt", stage.guide, latent_dim=tsidm.latent_state_dim,
                           mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
                           metadata={"results": str(Path(c.run_dir) / "results.json")})
-        diagnostics = {**stage.latent_stats, **action_chain_statistics(stage.actor, tsidm, data)}
+        with rng.use(k):  # an actor acting with dropout draws from its seed's own stream
+            diagnostics = {**stage.latent_stats, **action_chain_statistics(stage.actor, data)}
         results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), diagnostics,
                                      Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(data)),
                                      policy_steps=cfg.policy.steps - start))

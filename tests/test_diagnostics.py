@@ -103,20 +103,19 @@ def test_action_chain_statistics_split_the_error_between_tsidm_and_guide():
     data = load_dataset("hopper-medium-v2-10k")[:2000]
     tsidm = TSIDM(11, 3, **SMALL).eval()
     tsidm.fit_state_normalization(data["observation"])
-    moving = ~data["next", "terminated"].reshape(-1)
     with torch.no_grad():
         z, z_next = tsidm.encode_state(data["observation"]), tsidm.encode_state(data["next", "observation"])
         inverse = tsidm.decode_action(tsidm.infer_latent_action(z, z_next))
-    expected_inverse = (inverse - data["action"])[moving].pow(2).mean().item()
+    expected_inverse = (inverse - data["action"]).pow(2).mean().item()
 
-    # A guide proposing 2 z: its step is z itself, checked against a direct computation.
+    # A guide proposing 2 z: its step is z itself, checked against a direct computation, in batches of 300.
     doubling = TensorDictModule(Doubling(), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
-    stats = action_chain_statistics(make_tels_actor(tsidm, doubling), tsidm, data)
+    stats = action_chain_statistics(make_tels_actor(tsidm, doubling), data, batch_size=300)
     with torch.no_grad():
         acted = tsidm.decode_action(tsidm.infer_latent_action(z, 2 * z))
-    step, data_step = z[moving], (z_next - z)[moving]
+    step, data_step = z, z_next - z
     assert stats["inverse_action_mse"] == pytest.approx(expected_inverse, rel=1e-5)
-    assert stats["actor_action_mse"] == pytest.approx((acted - data["action"])[moving].pow(2).mean().item(), rel=1e-5)
+    assert stats["actor_action_mse"] == pytest.approx((acted - data["action"]).pow(2).mean().item(), rel=1e-5)
     assert stats["guide_step_ratio"] == pytest.approx(
         (step.pow(2).sum(-1).mean() / data_step.pow(2).sum(-1).mean()).sqrt().item(), rel=1e-5)
     assert stats["guide_step_cosine"] == pytest.approx(
@@ -124,7 +123,20 @@ def test_action_chain_statistics_split_the_error_between_tsidm_and_guide():
 
     # A guide that proposes the data's next latent adds no error of its own.
     oracle = TensorDictModule(Oracle(z, z_next), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
-    stats = action_chain_statistics(make_tels_actor(tsidm, oracle), tsidm, data)
+    stats = action_chain_statistics(make_tels_actor(tsidm, oracle), data)
     assert stats["actor_action_mse"] == pytest.approx(stats["inverse_action_mse"], rel=1e-5)
     assert stats["guide_step_ratio"] == pytest.approx(1.0, rel=1e-5)
     assert stats["guide_step_cosine"] == pytest.approx(1.0, abs=1e-5)
+
+    # The TS-IDM's part is Eq. (11) on the true next latent, whatever the head does with proposals.
+    reencoding = make_tels_actor(tsidm, oracle, reencode_proposal=True)
+    assert action_chain_statistics(reencoding, data)["inverse_action_mse"] == pytest.approx(expected_inverse, rel=1e-5)
+
+
+def test_action_chain_statistics_refuse_an_actor_that_is_not_a_tels_chain():
+    tsidm = TSIDM(11, 3, **SMALL)
+    guide = TensorDictModule(Doubling(), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
+    data = load_dataset("hopper-medium-v2-10k")[:10]
+    for actor in (make_tels_actor(tsidm, guide, from_latent=True), guide):
+        with pytest.raises(ValueError, match="needs a TELS actor that starts from observations"):
+            action_chain_statistics(actor, data)

@@ -74,9 +74,13 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     assert iql[6] == "-0.50 (-4.0 across it)"
     assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
     assert _row(text, task, "TELS")[6:8] == ["—", "too few evaluations"]
-    # a name only some runs record (an older run's) is no difference
-    assert run_grid._differing_hyperparameters([{"hyperparameters": {"lr": 1, "new": 0}},
-                                                {"hyperparameters": {"lr": 1}}]) == []
+    # a name an older run does not record reads as the default: no difference at the default, one elsewhere
+    older, at_default = {"hyperparameters": {"lr": 3e-4}}, {"hyperparameters": {"lr": 3e-4, "reward_scale": 1.0}}
+    changed = {"hyperparameters": {"lr": 3e-4, "reward_scale": "return_range"}}
+    assert run_grid._differing_hyperparameters([older, at_default], "iql", task) == []
+    assert run_grid._differing_hyperparameters([older, changed], "iql", task) == ["reward_scale"]
+    maze_run = {"hyperparameters": {"reward_bias": -1.0}}
+    assert run_grid._differing_hyperparameters([older, maze_run], "iql", "antmaze-umaze-v0-10k") == []
     assert bc[8].endswith("(../long20k/TABLE.md)")  # relative to grid/TABLE.md
 
 

@@ -16,7 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY, LatentActionHead, StateEncoder
 from torchrl_tels.modules.tsidm import TSIDM
 
 __all__ = ["latent_statistics", "rollout_statistics", "action_chain_statistics", "is_frozen", "is_off_data",
@@ -54,38 +54,51 @@ def rollout_statistics(rollout: TensorDictBase, latent_key=LATENT_KEY, guide_key
 
 
 @torch.no_grad()
-def action_chain_statistics(actor: TensorDictSequential, tsidm: TSIDM, data: TensorDictBase) -> dict[str, float]:
-    r"""Where a TELS actor's action error on transitions comes from (non-terminal ones: a terminal
-    next state is no latent the actor could aim at).
+def action_chain_statistics(actor: TensorDictSequential, data: TensorDictBase,
+                            batch_size: int = 65536) -> dict[str, float]:
+    r"""Where a TELS actor's action error on transitions comes from, over every transition (as Eq. 7
+    and Eq. 9 train on them), ``batch_size`` at a time.
 
-    * ``inverse_action_mse``: mean squared error of the actor's own Eq. (11) head fed the true next
-      latent, :math:`\psi_a(h_{inv}(z_s, z_{s'}))` against the data's action: the TS-IDM's share.
-    * ``actor_action_mse``: the same for the whole actor, whose head is fed :math:`\pi_g(z_s)`.
+    * ``inverse_action_mse``: mean squared error of Eq. (11) fed the true next latent,
+      :math:`\psi_a(h_{inv}(z_s, z_{s'}))` clipped to the actor's action bounds, against the data's
+      action: the TS-IDM's part, whatever the actor's head options.
+    * ``actor_action_mse``: the same for the actor as it acts (its head fed :math:`\pi_g(z_s)`,
+      with its own options; random if it keeps h_inv's dropout on).
     * ``guide_step_ratio``: :math:`\sqrt{\mathbb E\|\pi_g(z_s) - z_s\|^2 / \mathbb E\|z_{s'} - z_s\|^2}`,
       1 when the guide proposes steps of the data's size.
     * ``guide_step_cosine``: mean cosine between the proposed step and the data's step.
 
-    ``actor`` is :func:`~torchrl_tels.modules.make_tels_actor`'s chain (encoder, guide, head), run
-    deterministically on the actor's device.
+    ``actor`` is :func:`~torchrl_tels.modules.make_tels_actor`'s chain from observations (encoder,
+    guide, Eq. 11 head), run deterministically on its own device.
     """
-    device = next(actor.parameters()).device
-    keep = ~data["next", "terminated"].reshape(-1)
-    if not keep.any():
-        raise ValueError("action_chain_statistics: every transition is terminal; there is no next latent to aim at.")
-    data = data[keep].to(device)
-    observation, action = data["observation"], data["action"]
+    encoder, head = (actor[0].module, actor[-1].module) if isinstance(actor, TensorDictSequential) else (None, None)
+    if not (isinstance(encoder, StateEncoder) and isinstance(head, LatentActionHead)):
+        raise ValueError("action_chain_statistics needs a TELS actor that starts from observations "
+                         "(make_tels_actor(..., from_latent=False)): encoder, guide, Eq. (11) head.")
+    observation_key, action_key = actor[0].in_keys[0], actor[-1].out_keys[0]
+    tsidm, device = head.tsidm, next(actor.parameters()).device
+    sums = dict.fromkeys(("inverse", "actor", "guide_step", "data_step", "cosine"), 0.0)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        acted = actor(TensorDict({"observation": observation}, batch_size=[len(observation)], device=device))
-        latent, next_latent = acted.get(LATENT_KEY), tsidm.encode_state(data["next", "observation"])
-        head = actor[-1]
-        inverse = head(TensorDict({LATENT_KEY: latent, GUIDE_KEY: next_latent}, batch_size=[len(observation)],
-                                  device=device)).get(head.out_keys[0])
-    data_step, guide_step = next_latent - latent, acted.get(GUIDE_KEY) - latent
+        for batch in data.split(batch_size):
+            batch = batch.to(device)
+            acted = actor(TensorDict({observation_key: batch[observation_key]}, batch_size=batch.batch_size,
+                                     device=device))
+            latent, next_latent = acted.get(LATENT_KEY), tsidm.encode_state(batch["next", observation_key])
+            inverse = tsidm.decode_action(tsidm.infer_latent_action(latent, next_latent))
+            if head.low is not None or head.high is not None:
+                inverse = inverse.clamp(head.low, head.high)
+            data_step, guide_step = next_latent - latent, acted.get(GUIDE_KEY) - latent
+            sums["inverse"] += (inverse - batch[action_key]).pow(2).mean(-1).sum().item()
+            sums["actor"] += (acted.get(action_key) - batch[action_key]).pow(2).mean(-1).sum().item()
+            sums["guide_step"] += guide_step.pow(2).sum().item()
+            sums["data_step"] += data_step.pow(2).sum().item()
+            sums["cosine"] += torch.nn.functional.cosine_similarity(guide_step, data_step, dim=-1).sum().item()
+    count = data.numel()
     return {
-        "inverse_action_mse": (inverse - action).pow(2).mean().item(),
-        "actor_action_mse": (acted.get("action") - action).pow(2).mean().item(),
-        "guide_step_ratio": (guide_step.pow(2).sum(-1).mean() / data_step.pow(2).sum(-1).mean()).sqrt().item(),
-        "guide_step_cosine": torch.nn.functional.cosine_similarity(guide_step, data_step, dim=-1).mean().item(),
+        "inverse_action_mse": sums["inverse"] / count,
+        "actor_action_mse": sums["actor"] / count,
+        "guide_step_ratio": (sums["guide_step"] / sums["data_step"]) ** 0.5,
+        "guide_step_cosine": sums["cosine"] / count,
     }
 
 

@@ -105,7 +105,7 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
     the last 10 of 20); ``second_half_score_mean`` averages the later half of all
     evaluations. ``diagnostics`` holds what shows whether T-symmetry did
     anything: the latent scale, the guide's T-symmetry share and proposed step,
-    and the action error split between TS-IDM and guide (the given ``diagnostics``).
+    and the action error split between TS-IDM and guide, as the caller measured them.
     ``monitor`` holds the consistency monitor's record of the final evaluation
     (fraction of flagged steps, threshold); its per-step scores are plotted in
     ``monitor_scores.png`` rather than stored.

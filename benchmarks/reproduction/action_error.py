@@ -102,7 +102,7 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
     record = {"dataset": config["dataset"]["name"], "transitions": {k: int(m.sum()) for k, m in splits.items()},
               "acting": "reencode" if config["guide"].get("reencode_proposal") else "guide"}
     for split, rows in splits.items():
-        chain = action_chain_statistics(actor, tsidm, data[rows])
+        chain_statistics = action_chain_statistics(actor, data[rows])
         step = (z_next[rows] - z[rows]).pow(2).sum(-1).mean()
         guide_error = (proposal[rows] - z_next[rows]).pow(2).sum(-1).mean()
         record[split] = {
@@ -110,8 +110,8 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
             "latent_step_sq": step.item(),
             "guide_latent_error_sq": guide_error.item(),
             "guide_error_over_step": (guide_error / step).item(),
-            "guide_step_ratio": chain["guide_step_ratio"],
-            "guide_step_cosine": chain["guide_step_cosine"],
+            "guide_step_ratio": chain_statistics["guide_step_ratio"],
+            "guide_step_cosine": chain_statistics["guide_step_cosine"],
         }
     return record
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import statistics
 
 from benchmarks.reproduction import summary
@@ -205,8 +206,10 @@ def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0
     for task in tasks:
         for label, arm in arms:
             for path in sorted(folder.glob(f"{arm}-{task}-seed*.json")):
-                record = json.loads(path.read_text())
-                seed = int(path.stem.rsplit("seed", 1)[1])
+                match = re.fullmatch(rf"{re.escape(arm)}-{re.escape(task)}-seed(\d+)", path.stem)
+                if match is None:
+                    continue  # another arm whose name starts with this one's
+                record, seed = json.loads(path.read_text()), int(match.group(1))
                 run = summary.seed_results(summary.HERE / "results" / arm / task, lambda r: True).get(seed)
                 train = record["train"]
                 mse = train["action_mse"]
@@ -236,10 +239,12 @@ def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
     for record in records.values():
         caps += [name for name in record["scores"] if name not in caps]
     for name, record in records.items():
-        arm, task_seed = name.split("-", 1)
-        task, seed = task_seed.rsplit("-seed", 1)
+        match = re.fullmatch(r"(?P<arm>[^-]+)-(?P<task>.+)-seed(?P<seed>\d+)", name)
+        if match is None:
+            raise SystemExit(f"error: {folder / name}.json is not named <arm>-<task>-seed<k>.json")
+        arm, task, seed = match.group("arm", "task", "seed")
         error_path = summary.HERE / "results" / "action_error" / f"{name}.json"
-        ratio = json.loads(error_path.read_text())["train"]["guide_step_ratio"] if error_path.exists() else None
+        ratio = json.loads(error_path.read_text())["train"].get("guide_step_ratio") if error_path.exists() else None
         cells = [f"{record['scores'][c]:.1f}" if c in record["scores"] else "—" for c in caps]
         rows.append(f"| {task} | {labels.get(arm, arm)} | {seed} | {'—' if ratio is None else f'{ratio:.2f}'} | "
                     f"{' | '.join(cells)} |")

@@ -41,9 +41,11 @@ class CappedStep(nn.Module):
         self.guide, self.max_step = guide, max_step
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
-        step = self.guide(latent) - latent
-        shrink = (self.max_step / step.norm(dim=-1, keepdim=True).clamp_min(1e-12)).clamp(max=1.0)
-        return latent + step * shrink
+        proposal = self.guide(latent)
+        step = proposal - latent
+        norm = step.norm(dim=-1, keepdim=True)
+        # a step within the cap is the guide's own proposal, bit for bit
+        return torch.where(norm > self.max_step, latent + step * (self.max_step / norm.clamp_min(1e-12)), proposal)
 
 
 def capped_scores(run_dir: Path, caps: list[float]) -> dict:
