@@ -2,25 +2,16 @@
 from __future__ import annotations
 
 import torch
-from torch import nn
 
 from benchmarks.reproduction.proposal_cap import CappedStep
-
-
-class AddStep(nn.Module):
-    def __init__(self, step: torch.Tensor):
-        super().__init__()
-        self.register_buffer("step", step)
-
-    def forward(self, latent):
-        return latent + self.step
+from tests.test_diagnostics import Offset
 
 
 def test_long_steps_are_cut_to_the_cap_and_short_ones_kept():
     latent = torch.randn(3, 4)
     step = torch.tensor([[3.0, 4.0, 0.0, 0.0], [0.3, 0.4, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])  # norms 5, 0.5, 0
-    capped = CappedStep(AddStep(step), max_step=1.0)(latent) - latent
+    capped = CappedStep(Offset(step), max_step=1.0)(latent) - latent
     torch.testing.assert_close(capped[0], torch.tensor([0.6, 0.8, 0.0, 0.0]))  # norm 1, same direction
     proposal = latent + step
-    capped_proposal = CappedStep(AddStep(step), max_step=1.0)(latent)
+    capped_proposal = CappedStep(Offset(step), max_step=1.0)(latent)
     assert torch.equal(capped_proposal[1:], proposal[1:])  # within the cap: the guide's proposal, unchanged

@@ -199,17 +199,29 @@ ACTION_ERROR_ARMS = (("standardized", "scale_standardized"), ("relative", "scale
                      ("standardized, guide ℓ_Tsym ×50", "heldout_standardized_tsym50"))
 
 
+#: ``<arm>-<task>-seed<k>``: the file name of a per-run diagnostic (arm folder names hold no '-').
+RUN_RESULT_NAME = re.compile(r"(?P<arm>[^-]+)-(?P<task>.+)-seed(?P<seed>\d+)")
+
+
+def run_results(folder) -> dict[tuple[str, str, int], dict]:
+    """``{(arm, task, seed): record}`` of the per-run diagnostics in ``folder``."""
+    found = {}
+    for path in sorted(folder.glob("*.json")):
+        match = RUN_RESULT_NAME.fullmatch(path.stem)
+        if match is None:
+            raise SystemExit(f"error: {path} is not named <arm>-<task>-seed<k>.json")
+        found[match["arm"], match["task"], int(match["seed"])] = json.loads(path.read_text())
+    return found
+
+
 def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0])) -> list[str]:
     """Where each arm's action error comes from, per seed (``python -m benchmarks.reproduction.action_error``)."""
-    folder = summary.HERE / "results" / "action_error"
+    records = run_results(summary.HERE / "results" / "action_error")
     rows = []
     for task in tasks:
         for label, arm in arms:
-            for path in sorted(folder.glob(f"{arm}-{task}-seed*.json")):
-                match = re.fullmatch(rf"{re.escape(arm)}-{re.escape(task)}-seed(\d+)", path.stem)
-                if match is None:
-                    continue  # another arm whose name starts with this one's
-                record, seed = json.loads(path.read_text()), int(match.group(1))
+            for seed in sorted(s for a, t, s in records if (a, t) == (arm, task)):
+                record = records[arm, task, seed]
                 run = summary.seed_results(summary.HERE / "results" / arm / task, lambda r: True).get(seed)
                 train = record["train"]
                 mse = train["action_mse"]
@@ -232,19 +244,14 @@ def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0
 def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
     """The runs whose proposals left the data's step scale, re-evaluated with the step capped
     (``python -m benchmarks.reproduction.proposal_cap``)."""
-    folder = summary.HERE / "results" / "proposal_cap"
     labels = dict((arm, label) for label, arm in arms)
     rows, caps = [], []
-    records = {path.stem: json.loads(path.read_text()) for path in sorted(folder.glob("*.json"))}
+    records = run_results(summary.HERE / "results" / "proposal_cap")
+    errors = run_results(summary.HERE / "results" / "action_error")
     for record in records.values():
         caps += [name for name in record["scores"] if name not in caps]
-    for name, record in records.items():
-        match = re.fullmatch(r"(?P<arm>[^-]+)-(?P<task>.+)-seed(?P<seed>\d+)", name)
-        if match is None:
-            raise SystemExit(f"error: {folder / name}.json is not named <arm>-<task>-seed<k>.json")
-        arm, task, seed = match.group("arm", "task", "seed")
-        error_path = summary.HERE / "results" / "action_error" / f"{name}.json"
-        ratio = json.loads(error_path.read_text())["train"].get("guide_step_ratio") if error_path.exists() else None
+    for (arm, task, seed), record in records.items():
+        ratio = errors[arm, task, seed]["train"].get("guide_step_ratio") if (arm, task, seed) in errors else None
         cells = [f"{record['scores'][c]:.1f}" if c in record["scores"] else "—" for c in caps]
         rows.append(f"| {task} | {labels.get(arm, arm)} | {seed} | {'—' if ratio is None else f'{ratio:.2f}'} | "
                     f"{' | '.join(cells)} |")
