@@ -16,8 +16,9 @@ own transitions into its parts:
 and the guide's latent error ||π_g(z) - z'||² next to the size of the step
 ||z' - z||² it has to predict, with the size and direction of the step it proposes
 (``torchrl_tels.diagnostics.action_chain_statistics``). All errors are mean squared over action
-dimensions; ``acting`` names the prediction the actor acts with (``reencode`` or ``guide``). A run trained on a ``dataset.size`` subset is also scored on the
-transitions it never saw (``held_out``), which separates fit from generalization::
+dimensions; ``acting`` names the prediction the actor acts with (``reencode`` or ``guide``). A run
+trained on a ``dataset.size`` subset is also scored on the transitions it never saw (``held_out``),
+which separates fit from generalization::
 
     python -m benchmarks.reproduction.action_error --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
 
