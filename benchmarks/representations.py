@@ -45,7 +45,7 @@ CONTRASTIVE_TEMPERATURE = 0.1
 
 
 def squared_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Eq. (3)'s :math:`\|a - b\|^2`, summed over the vector (:func:`~torchrl_tels.modules.squared_norm`), batch mean."""
+    r"""Eq. (3)'s :math:`\|a - b\|^2`, summed over the vector (:func:`~torchrl_tels.modules.squared_norm`), batch mean."""
     from torchrl_tels.modules import squared_norm
 
     return squared_norm(a - b).mean()
