@@ -35,6 +35,9 @@ def main():
     parser.add_argument("--options", nargs="+", default=list(OPTIONS), choices=OPTIONS)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--force", action="store_true", help="rewrite a result that exists")
+    parser.add_argument("--tsidm-dir", type=Path, default=None,
+                        help="also save each trained TS-IDM as DIR/<option>/seed<k>/tsidm.pt, for a stage 2 run "
+                             "from it (tsidm.checkpoint=...)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     data = load_dataset("hopper-medium-v2-10k")
@@ -49,7 +52,10 @@ def main():
         torch.manual_seed(args.seed)
         start = time.time()
         with tempfile.TemporaryDirectory() as folder:
-            _, final, history = fit_tsidm(cfg, data, 1.0, RunState(config={}), Path(folder))
+            tsidm, final, history = fit_tsidm(cfg, data, 1.0, RunState(config={}), Path(folder))
+        if args.tsidm_dir is not None:
+            (args.tsidm_dir / option / f"seed{args.seed}").mkdir(parents=True, exist_ok=True)
+            tsidm.save(args.tsidm_dir / option / f"seed{args.seed}" / "tsidm.pt")
         write_result(out, {"option": option, "seed": args.seed, "steps": args.steps, "history": history,
                            "final": final, "elapsed_s": time.time() - start, "machine": machine_description(),
                            "command": f"python -m {__spec__.name} --steps {args.steps} --seed {args.seed} "
