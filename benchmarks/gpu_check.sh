@@ -6,11 +6,11 @@
 #        bash benchmarks/gpu_check.sh --download
 #   2. runs the tests that use CUDA (tests/test_device.py; they skip on a machine without one);
 #   3. times the study budget (3k TS-IDM + 5k policy steps) for one seed and for five seeds in one
-#      process (seeds=[0,1,2,3,4], stacked), and prints a table from the runs' results.json;
-#   4. runs stage 1 alone for the paper's 36k TS-IDM steps (benchmarks.reproduction.latent_shrink,
-#      seed 1, free and standardized latents side by side, each TS-IDM saved for a stage 2 run here).
-# Everything is written under a work folder; $OUT gets table.md and one archive of the text files
-# (the device returns at most 8 files).
+#      process (seeds=[0,1,2,3,4], stacked). A run need not finish: its stages' speeds are read from
+#      its last progress bars (on 2026-12-04 neither finished inside its cap).
+# Everything is written under a work folder; $OUT gets GPU.md (python -m benchmarks.gpu_table) and
+# one archive of the text files (the device returns at most 8 files). Commit the archive's walls.txt,
+# gpu.txt, tests.txt and *.log under benchmarks/results/gpu/<date>/ and run benchmarks.gpu_table there.
 #
 # Device call (from the repository root; $OUT comes back):
 #   bash benchmarks/gpu_check.sh            with carry: [".whl"] and timeout_s 590
@@ -31,14 +31,13 @@ if [ "${1:-}" = "--download" ]; then
 fi
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"
 RESULT_OUT=$OUT; OUT=/tmp/gpu_check_work; mkdir -p "$OUT"
-pack() {  # the table and every text file the runs wrote, as one archive in the returned folder
-  cp "$OUT/table.md" "$RESULT_OUT/" 2>/dev/null
+pack() {  # the table, and every text file the runs wrote, as one archive in the returned folder
+  python3 -m benchmarks.gpu_table "$OUT" > "$RESULT_OUT/GPU.md" 2>&1
   (cd "$OUT" && find . \( -name "*.json" -o -name "*.log" -o -name "*.txt" -o -name "*.md" \) -print0 \
     | tar -czf "$RESULT_OUT/gpu_check.tar.gz" --null -T -)
-  [ -d "$OUT/tsidm" ] && tar -cf "$RESULT_OUT/tsidm.tar" -C "$OUT" tsidm  # about 7 MB per TS-IDM
 }
 trap pack EXIT
-export PYTHONUNBUFFERED=1 MUJOCO_GL=egl
+export PYTHONUNBUFFERED=1  # no MUJOCO_GL: nothing renders, and its EGL loader is absent there
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl \
   || { echo "wheel install failed"; exit 1; }
@@ -60,36 +59,4 @@ echo "== study budget: one seed, then five seeds in one process"
 timed study_seed0 120 seed=0
 timed study_seeds5 150 'seeds=[0,1,2,3,4]'
 
-python3 - "$OUT" <<'PY' | tee "$OUT/table.md"
-import json, pathlib, sys
-out = pathlib.Path(sys.argv[1])
-walls = {name: (int(rc), int(s)) for name, rc, s in (line.split() for line in (out / "walls.txt").read_text().splitlines())}
-print("| run | exit | wall s (process) | stage 1 steps/s | stage 2 steps/s (no eval) | eval s | final score |")
-print("|---|---|---|---|---|---|---|")
-for name, label in (("study_seed0", "study budget, 1 seed"), ("study_seeds5", "study budget, 5 seeds in one process")):
-    rc, wall = walls.get(name, (None, None))
-    try:
-        r = json.loads((out / name / "results.json").read_text())
-    except (OSError, ValueError):
-        print(f"| {label} | {rc} | {wall} | did not finish | | | |")
-        continue
-    if "seeds" in r:  # the aggregate of a seeds run; the stage speeds are in each seed's results.json
-        one = json.loads((out / name / "seed0" / "results.json").read_text())
-        r = {**one, "final_normalized_score_mean": r["final_score_mean"]}
-    s = r["steps_per_s"]
-    print(f"| {label} | {rc} | {wall} | {s['tsidm']:.1f} | {s['policy_excluding_eval']:.1f} | "
-          f"{r['wall_time_s']['eval']:.1f} | {r['final_normalized_score_mean']:.1f} |")
-PY
-
-echo "== stage 1 alone at the paper's 36k TS-IDM steps, seed 1 (free and standardized latents at once)"
-for option in free standardized; do
-  ( start=$(date +%s)
-    timeout 180 python3 -m benchmarks.reproduction.latent_shrink --steps 36000 --seed 1 --options $option --force \
-      --tsidm-dir "$OUT/tsidm" \
-      > "$OUT/shrink_$option.log" 2>&1
-    echo "shrink_$option $? $(( $(date +%s) - start ))" >> "$OUT/walls.txt" ) &
-done
-wait
-mkdir -p "$OUT/latent_shrink"
-cp -r benchmarks/reproduction/results/latent_shrink/*/ "$OUT/latent_shrink/" 2>/dev/null
 cat "$OUT/walls.txt"

@@ -88,6 +88,26 @@ def test_recipe_runs_on_cuda_and_its_files_load_on_the_cpu(tmp_path):
     assert next(tsidm.parameters()).device == torch.device("cpu")
 
 
+@cuda
+def test_batched_evaluation_of_a_cuda_policy_matches_the_cpu():
+    """A policy on the GPU evaluated in CPU envs stepped together: the returns of the same policy on the CPU."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import DoubleToFloat, TransformedEnv
+    from torchrl.modules import MLP
+
+    from torchrl_tels.envs import evaluate_policy, make_eval_envs
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(MLP(in_features=3, out_features=1, num_cells=[64, 64]), torch.nn.Tanh())
+    cpu = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
+    gpu = TensorDictModule(copy.deepcopy(net).cuda(), in_keys=["observation"], out_keys=["action"])
+    batch = make_eval_envs("Pendulum-v1", 4, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
+    on_cpu = evaluate_policy(cpu, batch, 4, seed=3, max_steps=60)
+    on_gpu = evaluate_policy(gpu, batch, 4, seed=3, max_steps=60)
+    assert len(set(on_cpu)) == 4
+    torch.testing.assert_close(torch.tensor(on_gpu), torch.tensor(on_cpu), rtol=1e-3, atol=1e-3)
+
+
 def test_bf16_autocast_follows_the_run_device():
     """precision=bf16 autocasts on the device the run computes on, not always on the CPU."""
     from omegaconf import OmegaConf

@@ -235,3 +235,27 @@ def test_building_batched_eval_envs_leaves_the_training_rng_alone():
     torch.manual_seed(0)
     make_eval_envs("Hopper-v4", 3)
     assert torch.equal(torch.rand(3), expected)
+
+
+def test_policy_on_device_moves_inputs_to_the_policy_and_outputs_back():
+    """PolicyOnDevice hands the policy its input on the policy's device and returns the env's device;
+    in a batched evaluation it changes nothing else."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import DoubleToFloat, TransformedEnv
+
+    from torchrl_tels.envs import PolicyOnDevice, evaluate_policy, make_eval_envs
+
+    seen = []
+
+    def act(obs):
+        seen.append(obs.device)
+        return torch.tanh(obs[..., :1]) * 2
+
+    policy = TensorDictModule(act, in_keys=["observation"], out_keys=["action"])
+    wrapped = PolicyOnDevice(policy, "cpu", "cpu")
+    assert wrapped.in_keys == ["observation"] and wrapped.out_keys == ["action"]
+    batch = make_eval_envs("Pendulum-v1", 3, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
+    plain = evaluate_policy(policy, batch, 3, seed=5, max_steps=40)
+    moved = evaluate_policy(wrapped, batch, 3, seed=5, max_steps=40)
+    assert len(set(plain)) == 3 and moved == plain
+    assert set(seen) == {torch.device("cpu")}

@@ -12,7 +12,13 @@ from torchrl_tels.envs.tasks import (
     Task,
 )
 from torchrl_tels.envs import antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
-from torchrl_tels.envs.evaluation import evaluate_policy, make_eval_env, make_eval_envs, rollout_episodes
+from torchrl_tels.envs.evaluation import (
+    evaluate_policy,
+    make_eval_env,
+    make_eval_envs,
+    PolicyOnDevice,
+    rollout_episodes,
+)
 from torchrl_tels.envs.monitor import TSymConsistencyMonitor
 from torchrl_tels.envs.transforms import TSIDMEncoderTransform
 
@@ -29,4 +35,5 @@ __all__ = [
     "normalized_score",
     "register_task",
     "rollout_episodes",
+    "PolicyOnDevice",
 ]

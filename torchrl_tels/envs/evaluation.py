@@ -12,7 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_tels.errors import TaskError
 
-__all__ = ["make_eval_env", "make_eval_envs", "evaluate_policy", "rollout_episodes"]
+__all__ = ["make_eval_env", "make_eval_envs", "evaluate_policy", "rollout_episodes", "PolicyOnDevice"]
 
 
 def _cannot_create(env_id: str, err: Exception) -> TaskError:
@@ -89,14 +89,17 @@ def rollout_episodes(
     spends its time; copy ``j`` is reset with the seed of its episode, so the episodes
     are one env's, up to the float rounding of a batched matrix product (which a
     chaotic body can amplify over a long episode). The policy may live on another
-    device than the env: its inputs are moved to it and its outputs back.
+    device than the env: its inputs are moved to it and its outputs back
+    (:class:`PolicyOnDevice`).
     """
-    cast = _device_of(policy) != (env.device or torch.device("cpu"))
+    env_device = env.device or torch.device("cpu")
+    if _device_of(policy) != env_device:
+        policy = PolicyOnDevice(policy, _device_of(policy), env_device)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         if not env.batch_size:
             for episode in range(episodes):
                 env.set_seed(seed + episode)
-                yield env.rollout(max_steps, policy, break_when_any_done=True, auto_cast_to_device=cast)
+                yield env.rollout(max_steps, policy, break_when_any_done=True)
             return
         copies = env.batch_size[0]
         for first in range(0, episodes, copies):
@@ -111,11 +114,29 @@ def rollout_episodes(
                 # every copy: a vector env's plain reset would only replay the copies that were done
                 start = env.reset(TensorDict({"_reset": torch.ones(copies, 1, dtype=torch.bool)}, [copies]))
             batch = env.rollout(max_steps, policy, break_when_any_done=False, break_when_all_done=True,
-                                auto_cast_to_device=cast, auto_reset=False, tensordict=start)
+                                auto_reset=False, tensordict=start)
             done = batch["next", "done"].reshape(copies, -1)
             for j in range(min(copies, episodes - first)):
                 ends = done[j].nonzero()
                 yield batch[j, : int(ends[0]) + 1 if len(ends) else done.shape[1]]
+
+
+class PolicyOnDevice(TensorDictModuleBase):
+    """Runs ``policy`` on ``device`` for an env on ``env_device``: each step's input goes to the policy's
+    device and its output comes back.
+
+    TorchRL's own ``rollout(auto_cast_to_device=True)`` fails on a GPU for a batched rollout that stops
+    when all copies are done: it stores the steps on the policy's device and merges them with a done
+    mask on the env's ("Expected all tensors to be on the same device").
+    """
+
+    def __init__(self, policy: TensorDictModuleBase, device: torch.device, env_device: torch.device):
+        super().__init__()
+        self.policy, self.device, self.env_device = policy, torch.device(device), torch.device(env_device)
+        self.in_keys, self.out_keys = list(policy.in_keys), list(policy.out_keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.policy(tensordict.to(self.device)).to(self.env_device)
 
 
 def _device_of(policy) -> torch.device:
