@@ -132,19 +132,22 @@ def _around(history: list, step: int, width: int = 4) -> float:
 def shrink_table() -> list[str]:
     """Stage 1 alone, longer than the study's 3k steps: does the latent space shrink? (``latent_shrink``)"""
     folder = summary.HERE / "results" / "latent_shrink"
-    runs = {p.parent.name: json.loads(p.read_text()) for p in sorted(folder.glob("*/seed*.json"))}
+    runs = [json.loads(p.read_text()) for p in sorted(folder.glob("*/seed*.json"))]
     if not runs:
         return []
     lines = ["Stage 1 alone on hopper-medium-v2 10k, beta = 1 (`python -m benchmarks.reproduction.latent_shrink`); "
-             "each entry is the mean of the four batch values logged up to that step (every 250 steps):", "",
+             "each entry is the mean of the four batch values logged up to that step (every 250 steps). "
+             "step / spread is latent_step_rms / latent_rms: the dynamics' share of the latent space's size, "
+             "which a standardized latent can still shrink though its spread is fixed:", "",
              "| latent_scale | seed | steps | latent_rms at 250 / 3k / end | latent_step_rms at 3k / end | "
-             "ℓ_dyn at 3k / end | ℓ_Tsym at 3k / end |", "|---|---|---|---|---|---|---|"]
-    for option, run in runs.items():
+             "step / spread at 3k / end | ℓ_dyn at 3k / end | ℓ_Tsym at 3k / end |", "|---|---|---|---|---|---|---|---|"]
+    for run in runs:
         h, end = run["history"], run["steps"]
-        rms = h["latent_rms"]
+        rms, step = h["latent_rms"], h["latent_step_rms"]
         lines.append(
-            f"| {option} | {run['seed']} | {end} | {rms[0][1]:.3f} / {_around(rms, 3000):.3f} / {_around(rms, end):.3f} | "
-            f"{_around(h['latent_step_rms'], 3000):.3f} / {_around(h['latent_step_rms'], end):.3f} | "
+            f"| {run['option']} | {run['seed']} | {end} | {rms[0][1]:.3f} / {_around(rms, 3000):.3f} / "
+            f"{_around(rms, end):.3f} | {_around(step, 3000):.3f} / {_around(step, end):.3f} | "
+            f"{_around(step, 3000) / _around(rms, 3000):.2f} / {_around(step, end) / _around(rms, end):.2f} | "
             f"{_around(h['ell_dyn'], 3000):.4f} / {_around(h['ell_dyn'], end):.4f} | "
             f"{_around(h['ell_tsym'], 3000):.4f} / {_around(h['ell_tsym'], end):.4f} |")
     return lines + [""]
