@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU check: one prepared script for a lent GPU machine (no network there), <= 8 minutes.
+# The GPU check: one prepared script for a lent GPU machine (no network there), under 10 minutes.
 #
 #   1. installs the project from wheels carried in .whl/ (the machine's image has torch with
 #      CUDA but not torchrl, tensordict, gymnasium, mujoco, hydra or minari); make them here with
@@ -30,7 +30,7 @@ if [ "${1:-}" = "--download" ]; then
   exit $?
 fi
 OUT=${OUT:-/tmp/gpu_check}; mkdir -p "$OUT"
-RESULT_OUT=$OUT; OUT=/tmp/gpu_check_work; mkdir -p "$OUT"
+RESULT_OUT=$OUT; OUT=$(mktemp -d /tmp/gpu_check_work.XXXX)  # fresh per call: a warm machine keeps /tmp
 pack() {  # the table, and every text file the runs wrote, as one archive in the returned folder
   python3 -m benchmarks.gpu_table "$OUT" > "$RESULT_OUT/GPU.md" 2>&1
   (cd "$OUT" && find . \( -name "*.json" -o -name "*.log" -o -name "*.txt" -o -name "*.md" \) -print0 \
@@ -47,6 +47,7 @@ python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.i
 
 echo "== tests that use CUDA"
 timeout 80 python3 -m pytest -q tests/test_device.py 2>&1 | tee "$OUT/tests.txt" | tail -5
+pack  # again after each step: a call killed at its limit runs no EXIT trap
 
 timed() {  # timed NAME TIMEOUT recipe-overrides...: runs the recipe, records its wall seconds and exit code
   local name=$1 limit=$2; shift 2
@@ -54,6 +55,7 @@ timed() {  # timed NAME TIMEOUT recipe-overrides...: runs the recipe, records it
   timeout "$limit" python3 recipes/tels_offline.py device=cuda logger.wandb_mode=disabled run_dir="$OUT/$name" "$@" \
     > "$OUT/$name.log" 2>&1
   echo "$name $? $(( $(date +%s) - start ))" >> "$OUT/walls.txt"
+  pack
 }
 echo "== study budget: one seed, then five seeds in one process"
 timed study_seed0 120 seed=0

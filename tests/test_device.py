@@ -90,7 +90,8 @@ def test_recipe_runs_on_cuda_and_its_files_load_on_the_cpu(tmp_path):
 
 @cuda
 def test_batched_evaluation_of_a_cuda_policy_matches_the_cpu():
-    """A policy on the GPU evaluated in CPU envs stepped together: the returns of the same policy on the CPU."""
+    """A policy on the GPU evaluated in CPU envs stepped together, whose copies fall at different steps:
+    the returns of the same policy on the CPU."""
     from tensordict.nn import TensorDictModule
     from torchrl.envs import DoubleToFloat, TransformedEnv
     from torchrl.modules import MLP
@@ -98,13 +99,15 @@ def test_batched_evaluation_of_a_cuda_policy_matches_the_cpu():
     from torchrl_tels.envs import evaluate_policy, make_eval_envs
 
     torch.manual_seed(0)
-    net = torch.nn.Sequential(MLP(in_features=3, out_features=1, num_cells=[64, 64]), torch.nn.Tanh())
-    cpu = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
-    gpu = TensorDictModule(copy.deepcopy(net).cuda(), in_keys=["observation"], out_keys=["action"])
-    batch = make_eval_envs("Pendulum-v1", 4, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
-    on_cpu = evaluate_policy(cpu, batch, 4, seed=3, max_steps=60)
-    on_gpu = evaluate_policy(gpu, batch, 4, seed=3, max_steps=60)
-    assert len(set(on_cpu)) == 4
+    net = torch.nn.Sequential(MLP(in_features=11, out_features=3, num_cells=[64, 64]), torch.nn.Tanh())
+    gpu_net = copy.deepcopy(net).cuda()
+    cpu = TensorDictModule(lambda obs: 0.05 * net(obs), in_keys=["observation"], out_keys=["action"])
+    gpu = TensorDictModule(lambda obs: 0.05 * gpu_net(obs), in_keys=["observation"], out_keys=["action"])
+    gpu.register_module("net", gpu_net)  # so that the policy reports the device it computes on
+    batch = make_eval_envs("Hopper-v4", 4, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
+    on_cpu, lengths = evaluate_policy(cpu, batch, 4, seed=3, max_steps=200, with_lengths=True)
+    on_gpu = evaluate_policy(gpu, batch, 4, seed=3, max_steps=200)
+    assert max(lengths) < 200 and len(set(lengths)) > 1  # the path that merges finished and running copies
     torch.testing.assert_close(torch.tensor(on_gpu), torch.tensor(on_cpu), rtol=1e-3, atol=1e-3)
 
 

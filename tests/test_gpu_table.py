@@ -24,12 +24,24 @@ def test_render_uses_the_last_run_of_a_name_and_a_finished_run_s_score(tmp_path)
     (tmp_path / "tests.txt").write_text("....\n4 passed in 3.0s\n")
     (tmp_path / "study_seed0.log").write_text(BARS.replace(", 5 seeds", ""))
     (tmp_path / "study_seed0").mkdir()
-    (tmp_path / "study_seed0" / "results.json").write_text(json.dumps({"final_normalized_score_mean": 47.25}))
+    (tmp_path / "study_seed0" / "results.json").write_text(json.dumps({"final_normalized_score_mean": 47.26}))
     (tmp_path / "study_seeds5.log").write_text(BARS)
     table = render(tmp_path)
     assert "4 passed in 3.0s" in table
     rows = [line for line in table.splitlines() if line.startswith("| study")]
     # 3000 / 24 = 125.0 and 880 / 71 = 12.39...: the means over the elapsed time, not tqdm's smoothed rate
     assert rows[0].split(" | ")[1:] == ["0", "95", "125.0 (3,000/3,000 steps in 24 s)",
-                                        "12.4 (880/5,000 steps in 71 s)", "47.2 |"]
+                                        "12.4 (880/5,000 steps in 71 s)", "47.3 |"]
     assert rows[1].split(" | ")[1:3] == ["124", "150"] and rows[1].endswith("did not finish |")
+
+
+def test_bars_without_a_rate_or_a_description_and_hours_elapsed():
+    log = ("stage 1:  0%|          | 0/36000 [00:00<?, ?it/s]\r"
+           "stage 2: value + guide: 50%|#####     | 50000/100000 [1:02:46<?, ?it/s]\n")
+    assert stage_progress(log) == {"stage 1": (0, 36000, 0), "stage 2": (50000, 100000, 3766)}
+
+
+def test_a_check_that_stopped_early_renders_without_its_files(tmp_path):
+    table = render(tmp_path)
+    assert "machine: not run" in table and "there: not run" in table
+    assert not [line for line in table.splitlines() if line.startswith("| study")]

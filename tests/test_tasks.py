@@ -237,25 +237,26 @@ def test_building_batched_eval_envs_leaves_the_training_rng_alone():
     assert torch.equal(torch.rand(3), expected)
 
 
-def test_policy_on_device_moves_inputs_to_the_policy_and_outputs_back():
-    """PolicyOnDevice hands the policy its input on the policy's device and returns the env's device;
-    in a batched evaluation it changes nothing else."""
+def test_policy_on_device_leaves_a_batched_evaluation_unchanged():
+    """PolicyOnDevice returns the whole step on the env's device, with the action; in a batched Hopper
+    evaluation whose copies fall at different steps (the path that merges finished and running copies)
+    the returns are the unwrapped policy's."""
+    from tensordict import TensorDict
     from tensordict.nn import TensorDictModule
     from torchrl.envs import DoubleToFloat, TransformedEnv
+    from torchrl.modules import MLP
 
     from torchrl_tels.envs import PolicyOnDevice, evaluate_policy, make_eval_envs
 
-    seen = []
-
-    def act(obs):
-        seen.append(obs.device)
-        return torch.tanh(obs[..., :1]) * 2
-
-    policy = TensorDictModule(act, in_keys=["observation"], out_keys=["action"])
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(MLP(in_features=11, out_features=3, num_cells=[64, 64]), torch.nn.Tanh())
+    policy = TensorDictModule(lambda obs: 0.05 * net(obs), in_keys=["observation"], out_keys=["action"])
     wrapped = PolicyOnDevice(policy, "cpu", "cpu")
-    assert wrapped.in_keys == ["observation"] and wrapped.out_keys == ["action"]
-    batch = make_eval_envs("Pendulum-v1", 3, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
-    plain = evaluate_policy(policy, batch, 3, seed=5, max_steps=40)
-    moved = evaluate_policy(wrapped, batch, 3, seed=5, max_steps=40)
-    assert len(set(plain)) == 3 and moved == plain
-    assert set(seen) == {torch.device("cpu")}
+    step = wrapped(TensorDict({"observation": torch.zeros(2, 11), "step_count": torch.ones(2, 1)}, [2]))
+    assert step.device == torch.device("cpu") and set(step.keys()) == {"observation", "step_count", "action"}
+    torch.testing.assert_close(step["action"], 0.05 * net(torch.zeros(2, 11)))
+    batch = make_eval_envs("Hopper-v4", 4, wrap=lambda env: TransformedEnv(env, DoubleToFloat()))
+    plain, lengths = evaluate_policy(policy, batch, 4, seed=3, max_steps=200, with_lengths=True)
+    moved = evaluate_policy(wrapped, batch, 4, seed=3, max_steps=200)
+    assert max(lengths) < 200 and len(set(lengths)) > 1  # copies ended, at different steps
+    assert moved == plain

@@ -132,11 +132,13 @@ def _around(history: list, step: int, width: int = 4) -> float:
 def shrink_table() -> list[str]:
     """Stage 1 alone, longer than the study's 3k steps: does the latent space shrink? (``latent_shrink``)"""
     folder = summary.HERE / "results" / "latent_shrink"
-    runs = [json.loads(p.read_text()) for p in sorted(folder.glob("*/seed*.json"))]
+    runs = sorted((json.loads(p.read_text()) for p in folder.glob("*/seed*.json")),
+                  key=lambda run: (run["option"], run["seed"]))
     if not runs:
         return []
     lines = ["Stage 1 alone on hopper-medium-v2 10k, beta = 1 (`python -m benchmarks.reproduction.latent_shrink`); "
-             "each entry is the mean of the four batch values logged up to that step (every 250 steps). "
+             "each entry is the mean of the four batch values logged up to that step (every 250 steps), "
+             "except the first, one batch at step 250. "
              "step / spread is latent_step_rms / latent_rms: the dynamics' share of the latent space's size, "
              "which a standardized latent can still shrink though its spread is fixed:", "",
              "| latent_scale | seed | steps | latent_rms at 250 / 3k / end | latent_step_rms at 3k / end | "

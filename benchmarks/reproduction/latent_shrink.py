@@ -44,6 +44,8 @@ def main():
     for option in args.options:
         out = RESULTS / option / f"seed{args.seed}.json"
         if skip_existing(out, args.force):
+            if args.tsidm_dir is not None:
+                print(f"{option}: no TS-IDM saved to {args.tsidm_dir}, since the run was skipped (--force reruns it)")
             continue
         overrides = ["domain=paper", f"tsidm.latent_scale={option}", f"tsidm.steps={args.steps}",
                      "logger.log_interval=250", f"checkpoint.interval={args.steps + 1}", f"seed={args.seed}"]
@@ -55,7 +57,9 @@ def main():
             tsidm, final, history = fit_tsidm(cfg, data, 1.0, RunState(config={}), Path(folder))
         if args.tsidm_dir is not None:
             (args.tsidm_dir / option / f"seed{args.seed}").mkdir(parents=True, exist_ok=True)
-            tsidm.save(args.tsidm_dir / option / f"seed{args.seed}" / "tsidm.pt")
+            tsidm.save(args.tsidm_dir / option / f"seed{args.seed}" / "tsidm.pt",
+                       metadata={"dataset": "hopper-medium-v2-10k", "latent_scale": option, "beta": 1.0,
+                                 "steps": args.steps, "seed": args.seed})
         write_result(out, {"option": option, "seed": args.seed, "steps": args.steps, "history": history,
                            "final": final, "elapsed_s": time.time() - start, "machine": machine_description(),
                            "command": f"python -m {__spec__.name} --steps {args.steps} --seed {args.seed} "

@@ -24,6 +24,7 @@ from torchrl_tels.envs.transforms import TSIDMEncoderTransform
 
 __all__ = [
     "D4RL_REFERENCE_SCORES",
+    "PolicyOnDevice",
     "TSIDMEncoderTransform",
     "TSymConsistencyMonitor",
     "Task",
@@ -35,5 +36,4 @@ __all__ = [
     "normalized_score",
     "register_task",
     "rollout_episodes",
-    "PolicyOnDevice",
 ]

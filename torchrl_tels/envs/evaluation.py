@@ -92,9 +92,9 @@ def rollout_episodes(
     device than the env: its inputs are moved to it and its outputs back
     (:class:`PolicyOnDevice`).
     """
-    env_device = env.device or torch.device("cpu")
-    if _device_of(policy) != env_device:
-        policy = PolicyOnDevice(policy, _device_of(policy), env_device)
+    env_device, policy_device = env.device or torch.device("cpu"), _device_of(policy)
+    if policy_device != env_device and not isinstance(policy, PolicyOnDevice):
+        policy = PolicyOnDevice(policy, policy_device, env_device)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         if not env.batch_size:
             for episode in range(episodes):
@@ -125,9 +125,11 @@ class PolicyOnDevice(TensorDictModuleBase):
     """Runs ``policy`` on ``device`` for an env on ``env_device``: each step's input goes to the policy's
     device and its output comes back.
 
-    TorchRL's own ``rollout(auto_cast_to_device=True)`` fails on a GPU for a batched rollout that stops
-    when all copies are done: it stores the steps on the policy's device and merges them with a done
-    mask on the env's ("Expected all tensors to be on the same device").
+    TorchRL's own ``rollout(auto_cast_to_device=True)`` does not bring the policy's output back to an env
+    without a device (``env.device is None``, as Gymnasium envs are built here): it only clears the
+    tensordict's device, the step's tensors stay on the GPU, and a batched rollout that stops when all
+    copies are done then merges them with a done mask on the CPU ("Expected all tensors to be on the
+    same device").
     """
 
     def __init__(self, policy: TensorDictModuleBase, device: torch.device, env_device: torch.device):
