@@ -56,8 +56,9 @@ def main():
         with tempfile.TemporaryDirectory() as folder:
             tsidm, final, history = fit_tsidm(cfg, data, 1.0, RunState(config={}), Path(folder))
         if args.tsidm_dir is not None:
-            (args.tsidm_dir / option / f"seed{args.seed}").mkdir(parents=True, exist_ok=True)
-            tsidm.save(args.tsidm_dir / option / f"seed{args.seed}" / "tsidm.pt",
+            tsidm_folder = args.tsidm_dir / option / f"seed{args.seed}"
+            tsidm_folder.mkdir(parents=True, exist_ok=True)
+            tsidm.save(tsidm_folder / "tsidm.pt",
                        metadata={"dataset": "hopper-medium-v2-10k", "latent_scale": option, "beta": 1.0,
                                  "steps": args.steps, "seed": args.seed})
         write_result(out, {"option": option, "seed": args.seed, "steps": args.steps, "history": history,
