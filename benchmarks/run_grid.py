@@ -46,6 +46,7 @@ from benchmarks.baselines import (check_reward_scale, HYPERPARAMETERS, MAZE_HYPE
                                   train_baseline)
 from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
                                 skip_existing, write_result)
+from torchrl_tels.record import second_half_mean
 from torchrl_tels.training import write_text
 
 DEFAULT_RESULTS = REPO / "benchmarks" / "results"
@@ -394,6 +395,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     lines += aggregate_section(found, results_dir / "plots", longer)
     lines += flatness_section(found, tasks)
     lines += longer_budget_section(found, longer, tasks, results_dir)
+    lines += flat_budget_section(found, longer, tasks, results_dir / "plots")
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -420,12 +422,29 @@ def score_matrix(found: dict, method: str, tasks=AGGREGATE_TASKS):
     return np.array([[d[s] for d in by_task] for s in seeds])
 
 
+_AGGREGATE_HEADER = ("| method | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|")
+
+
+def _interval_estimates(matrices: dict) -> dict:
+    """{label: [(IQM, low, high), (mean, low, high)]} of each ``[seeds, tasks]`` score matrix."""
+    from benchmarks import aggregate
+
+    return {label: [aggregate.stratified_bootstrap_ci(scores, statistic)
+                    for statistic in (aggregate.iqm, aggregate.mean)] for label, scores in matrices.items()}
+
+
+def _aggregate_rows(matrices: dict, estimates: dict) -> list[str]:
+    rows = []
+    for label, scores in matrices.items():
+        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in estimates[label]]
+        rows.append(f"| {label} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
+    return rows
+
+
 def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None = None) -> list[str]:
     """IQM and mean over tasks × seeds with stratified-bootstrap 95 % intervals (``benchmarks.aggregate``),
     as a table and a PNG with the performance profiles; a method run at a longer budget on all four sets
     (``longer``) gets a row of its own."""
-    from benchmarks import aggregate
-
     matrices = {LABELS[m]: score_matrix(found, m) for m in TABLE_COLUMNS}
     for longer_dir, longer_found in (longer or {}).items():
         for method in TABLE_COLUMNS:
@@ -445,13 +464,9 @@ def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None
              "stratified-bootstrap intervals (2,000 resamples of each task's seeds; `benchmarks/aggregate.py`, "
              "rliable's definitions). Only seeds present on all four sets enter; a row without a budget is at "
              "the grid's (see the table above).", "",
-             "| method | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|"]
-    estimates = {}
-    for label, scores in matrices.items():
-        estimates[label] = [aggregate.stratified_bootstrap_ci(scores, statistic)
-                            for statistic in (aggregate.iqm, aggregate.mean)]
-        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in estimates[label]]
-        lines.append(f"| {label} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
+             *_AGGREGATE_HEADER]
+    estimates = _interval_estimates(matrices)
+    lines += _aggregate_rows(matrices, estimates)
     path = _aggregate_plot(matrices, estimates, folder)
     return lines + ["", f"![aggregate](plots/{path.name})"]
 
@@ -473,6 +488,20 @@ def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float] | 
     late = steps[len(steps) // 2:]
     means = [statistics.fmean(c[s] for c in curves) for s in late]
     return late, means, float(np.polyfit(np.array(late) / 1000.0, means, 1)[0])
+
+
+def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
+    """``(slope cell, verdict, flat)`` for the seed-mean curve of ``runs``: the second half's least-squares
+    slope per 1k steps and how far that line moves across the half, flat when it moves less than
+    :data:`FLAT_POINTS`."""
+    fit = second_half_fit(runs)
+    if fit is None:
+        return "—", "too few evaluations", False
+    late, _, slope = fit
+    rise_across_half = slope * (late[-1] - late[0]) / 1000.0
+    flat = abs(rise_across_half) < FLAT_POINTS
+    verdict = "flat" if flat else "**still rising**" if rise_across_half > 0 else "**still falling**"
+    return f"{slope:+.2f} ({rise_across_half:+.1f} across it)", verdict, flat
 
 
 def flatness_section(found: dict, tasks: list[str]) -> list[str]:
@@ -517,15 +546,7 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
                 if not longer_runs:
                     continue
                 runs_here = found.get(task, {}).get(method, [])
-                fit = second_half_fit(longer_runs)
-                if fit is None:
-                    slope_cell, verdict = "—", "too few evaluations"
-                else:
-                    late, _, slope = fit
-                    rise_across_half = slope * (late[-1] - late[0]) / 1000.0
-                    slope_cell = f"{slope:+.2f} ({rise_across_half:+.1f} across it)"
-                    verdict = ("flat" if abs(rise_across_half) < FLAT_POINTS
-                               else "**still rising**" if rise_across_half > 0 else "**still falling**")
+                slope_cell, verdict, _ = curve_verdict(longer_runs)
                 differ = _differing_hyperparameters(runs_here + longer_runs, method, task)
                 if differ:
                     verdict += f"; **hyperparameters differ: {', '.join(differ)}**"
@@ -543,6 +564,69 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "where the curve behind it is flat.", "",
             "| task | method | budget | score | longer budget | score | second half: slope per 1k | "
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
+
+
+def flat_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], folder: Path) -> list[str]:
+    """Each method on each set at the longest budget it was run at, among this grid's and the ``--longer``
+    folders' (at equal budgets, the folder named last), with every budget's verdict on its curve
+    (:func:`curve_verdict`): the longest, because a curve flat over a short run can still move later. The score is the second-half mean
+    (:func:`torchrl_tels.record.second_half_mean`), so that budgets with different numbers of evaluations are
+    read alike. Then the aggregate over the four shared sets, with the same intervals as
+    :func:`aggregate_section` and a PNG of its own."""
+    import numpy as np
+
+    grids = [found, *longer.values()]
+    picks, rows = {}, []
+    for task in tasks + sorted({t for g in longer.values() for t in g} - set(tasks)):
+        for method in TABLE_COLUMNS:
+            candidates = sorted(((r["budget"]["policy_steps"], i) for i, g in enumerate(grids)
+                                 for r in g.get(task, {}).get(method, [])))
+            tried = []
+            for steps, i in dict.fromkeys(candidates):
+                runs = [r for r in grids[i][task][method] if r["budget"]["policy_steps"] == steps]
+                tried.append((steps, runs, *curve_verdict(runs)))
+            if not tried:
+                continue
+            steps, runs, _, _, flat = tried[-1]
+            picks[task, method] = steps, runs, flat
+            halves = [second_half_mean(r["evaluations"]) for r in runs]
+            mean, std = _mean_std(halves)
+            rows.append(f"| {task} | {LABELS[method]} | "
+                        + " · ".join(f"{_steps_label(t[0])}: {t[3]}" for t in tried)
+                        + f" | {_steps_label(steps)}{'' if flat else ' (**not flat**)'} | "
+                        f"**{mean:.1f}** ± {std:.1f} (n={len(halves)}) |")
+    if not rows:
+        return []
+    lines = ["", "## Each method at its longest budget", "",
+             "Each method on each set at the longest budget it was run at, among this table's and the "
+             "`--longer` folders', with the verdict on the curve at every budget run (flat: the second half's "
+             f"least-squares line moves less than {FLAT_POINTS:g} points). A score is converged where the "
+             "longest curve is flat; where it is not, the row says so. The score is the mean of each seed's "
+             "later half of evaluations (Table 1's last 10 of 20, whatever the number of evaluations), "
+             "mean ± std over seeds.", "",
+             "| task | method | budgets run: verdict | read at | second-half score |", "|---|---|---|---|---|",
+             *rows]
+    matrices, estimates = {}, {}
+    for method in TABLE_COLUMNS:
+        if not all((task, method) in picks for task in AGGREGATE_TASKS):
+            continue
+        by_task = [{r["seed"]: second_half_mean(r["evaluations"]) for r in picks[task, method][1]}
+                   for task in AGGREGATE_TASKS]
+        seeds = sorted(set.intersection(*(set(d) for d in by_task)))
+        if not seeds:
+            continue
+        budgets = sorted({picks[task, method][0] for task in AGGREGATE_TASKS})
+        not_flat = [task for task in AGGREGATE_TASKS if not picks[task, method][2]]
+        label = (f"{LABELS[method]} at " + " / ".join(_steps_label(b) for b in budgets) + " steps"
+                 + (f", not flat on {len(not_flat)} of {len(AGGREGATE_TASKS)}" if not_flat else ""))
+        matrices[label] = np.array([[d[s] for d in by_task] for s in seeds])
+    if not matrices:
+        return lines
+    estimates = _interval_estimates(matrices)
+    lines += ["", "Over the four shared sets, each method at those budgets (second-half scores; seeds present on "
+              "all four sets):", "", *_AGGREGATE_HEADER, *_aggregate_rows(matrices, estimates)]
+    path = _aggregate_plot(matrices, estimates, folder, "aggregate_longest_budget.png")
+    return lines + ["", f"![aggregate at the longest budgets](plots/{path.name})"]
 
 
 def _differing_hyperparameters(runs: list[dict], method: str, task: str) -> list[str]:
@@ -566,7 +650,7 @@ def _link(folder: Path, results_dir: Path) -> str:
     return Path(os.path.relpath(folder / "TABLE.md", results_dir)).as_posix()
 
 
-def _aggregate_plot(matrices: dict, estimates: dict, folder: Path) -> Path:
+def _aggregate_plot(matrices: dict, estimates: dict, folder: Path, filename: str = "aggregate.png") -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -595,7 +679,7 @@ def _aggregate_plot(matrices: dict, estimates: dict, folder: Path) -> Path:
     ax_profile.set_title("performance profiles")
     ax_profile.legend(fontsize=8)
     fig.tight_layout()
-    return save_figure(fig, folder / "aggregate.png")
+    return save_figure(fig, folder / filename)
 
 
 def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:

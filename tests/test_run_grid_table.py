@@ -48,7 +48,7 @@ def grids(tmp_path):
 
 
 def _row(text: str, task: str, label: str) -> list[str]:
-    section = text.split("## Each method at this budget and at a longer one")[1]
+    section = text.split("## Each method at this budget and at a longer one")[1].split("\n## ")[0]
     rows = [line for line in section.splitlines() if line.startswith(f"| {task} | {label} |")]
     assert len(rows) == 1, rows
     return [cell.strip() for cell in rows[0].strip("|").split("|")]
@@ -103,7 +103,8 @@ def test_two_longer_folders_at_one_budget_keep_a_row_each(grids, tmp_path):
     for task in TASKS:
         for seed in (0, 1):
             _write(twin, "bc", task, _record(seed, 20000, 2000, lambda s: 99.0))
-    lines = run_grid.render_table(short, (longer, twin)).read_text().splitlines()
+    text = run_grid.render_table(short, (longer, twin)).read_text()
+    lines = text.split("## Aggregate over the four shared sets")[1].split("\n## ")[0].splitlines()
     rows = [line for line in lines if line.startswith("| BC at 20k steps")]
     assert len(rows) == 2 and "**99.0**" in rows[1] and "twin" in rows[1] and "**99.0**" not in rows[0]
 
@@ -124,3 +125,46 @@ def test_a_table_of_changed_baselines_names_the_change(grids):
         _write(short, "iql", TASKS[1], _record(seed, 5000, 500, lambda s: 20.0, reward_scale="return_range"))
     text = run_grid.render_table(short).read_text()
     assert "**Changed from the baselines' defaults:** IQL `reward_scale=return_range`." in text
+
+
+def _flat_row(text: str, task: str, label: str) -> list[str]:
+    section = text.split("## Each method at its longest budget")[1].split("\n## ")[0]
+    rows = [line for line in section.splitlines() if line.startswith(f"| {task} | {label} |")]
+    assert len(rows) == 1, rows
+    return [cell.strip() for cell in rows[0].strip("|").split("|")]
+
+
+def test_each_method_is_read_at_its_longest_budget_with_every_verdict(grids):
+    short, longer = grids
+    for i, task in enumerate(TASKS):
+        for seed in (0, 1):
+            # TD3+BC still rising at 5k; at 20k it rises until 10k and is flat at 10 i² + seed after it, so
+            # its second-half score is exactly that while the mean of all ten evaluations is lower
+            _write(short, "td3bc", task, _record(seed, 5000, 500, lambda s: s / 100.0))
+            _write(longer, "td3bc", task, _record(seed, 20000, 2000,
+                                                  lambda s: 10.0 * i**2 + seed - max(0.0, 10000 - s) / 1000.0))
+    text = run_grid.render_table(short, (longer,)).read_text()
+    task = TASKS[0]
+    # BC at 20k: seed 0 is 2e-4 s, read over 12k..20k (mean step 16k), seed 1 is 1
+    assert _flat_row(text, task, "BC")[2:] == ["5k: flat · 20k: flat", "20k", "**2.1** ± 1.1 (n=2)"]
+    assert _flat_row(text, task, "TD3+BC")[2:] == ["5k: **still rising** · 20k: flat", "20k", "**0.5** ± 0.5 (n=2)"]
+    # flat over a short run, falling over a longer one: read at the longer, marked
+    assert _flat_row(text, task, "IQL")[2:] == ["5k: flat · 20k: **still falling**", "20k (**not flat**)",
+                                                "**32.0** ± 0.0 (n=2)"]
+    # two evaluations are too few to judge: the longest budget, marked, read at its later evaluation
+    assert _flat_row(text, task, "TELS")[2:] == ["4k: too few evaluations", "4k (**not flat**)", "**1.0** ± 0.0 (n=2)"]
+    scores = np.array([[10.0 * i**2 + seed for i in range(len(TASKS))] for seed in (0, 1)])
+    iqm, mean = stats.trim_mean(scores.reshape(-1), 0.25), scores.mean()
+    section = text.split("## Each method at its longest budget")[1]
+    row = next(line for line in section.splitlines() if line.startswith("| TD3+BC at 20k steps |"))
+    assert re.search(rf"\| 2 × 4 \| \*\*{iqm:.1f}\*\* \[[^]]*\] \| \*\*{mean:.1f}\*\* \[", row), (row, iqm, mean)
+    assert any(line.startswith("| TELS at 4k steps, not flat on 4 of 4 |") for line in section.splitlines())
+    assert (short / "plots" / "aggregate_longest_budget.png").stat().st_size > 0
+
+
+def test_the_second_half_mean_reads_the_later_half_of_any_number_of_evaluations():
+    from torchrl_tels.record import second_half_mean
+
+    assert second_half_mean([{"score": s} for s in (0.0, 10.0, 2.0, 4.0)]) == 3.0
+    assert second_half_mean([{"score": s} for s in (0.0, 2.0, 4.0)]) == 3.0  # the middle one counts as later
+    assert np.isnan(second_half_mean([]))

@@ -98,6 +98,14 @@ class RunLogger:
                 self._drop_wandb(err)
 
 
+def second_half_mean(evaluations: list[Mapping]) -> float:
+    """The mean score of the later half of ``evaluations`` (the middle one goes with the later half when their
+    number is odd): Table 1's "last 10 of 20" for any number of evaluations, so a run's early policies never
+    enter its score. NaN for no evaluations."""
+    later = evaluations[len(evaluations) // 2:]
+    return sum(e["score"] for e in later) / len(later) if later else float("nan")
+
+
 def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_steps: int, policy_steps: int) -> dict:
     """Writes ``results.json`` and the PNG plots of a finished run; returns the results.
 
@@ -118,7 +126,6 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
     evaluations, wall = run.evaluations, run.wall
     last = evaluations[-cfg.eval.last_n:]
     final = torch.tensor([e["score"] for e in last])
-    later = evaluations[len(evaluations) // 2:]
     n_candidates = len(run.beta_results or [None])
     monitor = evaluations[-1].get("monitor") if evaluations else None
     monitor_summary = None if monitor is None else {k: v for k, v in monitor.items() if k != "scores"}
@@ -134,7 +141,7 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
         "final_normalized_score_mean": final.mean().item(),
         "final_normalized_score_std": final.std(unbiased=False).item(),
         "final_over_last_n_evaluations": len(last),
-        "second_half_score_mean": sum(e["score"] for e in later) / max(len(later), 1),
+        "second_half_score_mean": second_half_mean(evaluations),
         "evaluations": evaluations,
         "monitor": monitor_summary,
         "diagnostics": {
