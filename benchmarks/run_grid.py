@@ -395,7 +395,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     lines += aggregate_section(found, results_dir / "plots", longer)
     lines += flatness_section(found, tasks)
     lines += longer_budget_section(found, longer, tasks, results_dir)
-    lines += flat_budget_section(found, longer, tasks, results_dir / "plots")
+    lines += longest_budget_section(found, longer, tasks, results_dir / "plots")
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -566,12 +566,12 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
 
 
-def flat_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], folder: Path) -> list[str]:
+def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], folder: Path) -> list[str]:
     """Each method on each set at the longest budget it was run at, among this grid's and the ``--longer``
     folders' (at equal budgets, the folder named last), with every budget's verdict on its curve
-    (:func:`curve_verdict`): the longest, because a curve flat over a short run can still move later. The score is the second-half mean
-    (:func:`torchrl_tels.record.second_half_mean`), so that budgets with different numbers of evaluations are
-    read alike. Then the aggregate over the four shared sets, with the same intervals as
+    (:func:`curve_verdict`): the longest, because a curve flat over a short run can still move later. The
+    score is the second-half mean (:func:`torchrl_tels.record.second_half_mean`), so that budgets with
+    different numbers of evaluations are read alike. Then the aggregate over the four shared sets, with the same intervals as
     :func:`aggregate_section` and a PNG of its own."""
     import numpy as np
 
@@ -606,7 +606,7 @@ def flat_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str],
              "mean ± std over seeds.", "",
              "| task | method | budgets run: verdict | read at | second-half score |", "|---|---|---|---|---|",
              *rows]
-    matrices, estimates = {}, {}
+    matrices = {}
     for method in TABLE_COLUMNS:
         if not all((task, method) in picks for task in AGGREGATE_TASKS):
             continue
