@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import shutil
@@ -476,9 +477,10 @@ def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None
 FLAT_POINTS = 2.0
 
 
-def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float] | None:
-    """``(steps, seed-mean scores, slope per 1k steps)`` over the second half of the evaluation steps every
-    run shares, or ``None`` with fewer than four shared evaluations."""
+def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float, float] | None:
+    """``(steps, seed-mean scores, slope per 1k steps, its standard error)`` of a least-squares line over the
+    second half of the evaluation steps every run shares, or ``None`` with fewer than four shared
+    evaluations; the standard error is NaN where the half has only two points."""
     import numpy as np
 
     curves = [{e["step"]: e["score"] for e in r.get("evaluations", [])} for r in runs]
@@ -487,21 +489,33 @@ def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float] | 
         return None
     late = steps[len(steps) // 2:]
     means = [statistics.fmean(c[s] for c in curves) for s in late]
-    return late, means, float(np.polyfit(np.array(late) / 1000.0, means, 1)[0])
+    x, y = np.array(late) / 1000.0, np.array(means)
+    slope, intercept = np.polyfit(x, y, 1)
+    residuals = y - (slope * x + intercept)
+    spread = float(((x - x.mean()) ** 2).sum())
+    se = math.sqrt((residuals**2).sum() / (len(x) - 2) / spread) if len(x) > 2 else math.nan
+    return late, means, float(slope), se
 
 
 def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
     """``(slope cell, verdict, flat)`` for the seed-mean curve of ``runs``: the second half's least-squares
-    slope per 1k steps and how far that line moves across the half, flat when it moves less than
-    :data:`FLAT_POINTS`."""
+    slope per 1k steps and how far that line moves across the half, ± twice its standard error. Flat when
+    it moves less than :data:`FLAT_POINTS`; still rising or falling when it moves more and the ± band
+    excludes 0; otherwise the evaluations are too noisy to tell (not flat either)."""
     fit = second_half_fit(runs)
     if fit is None:
         return "—", "too few evaluations", False
-    late, _, slope = fit
-    rise_across_half = slope * (late[-1] - late[0]) / 1000.0
-    flat = abs(rise_across_half) < FLAT_POINTS
-    verdict = "flat" if flat else "**still rising**" if rise_across_half > 0 else "**still falling**"
-    return f"{slope:+.2f} ({rise_across_half:+.1f} across it)", verdict, flat
+    late, _, slope, se = fit
+    span = (late[-1] - late[0]) / 1000.0
+    rise, band = slope * span, 2 * se * span
+    flat = abs(rise) < FLAT_POINTS
+    if flat:
+        verdict = "flat"
+    elif abs(rise) > band:  # False for a NaN band: two points cannot show a trend
+        verdict = "**still rising**" if rise > 0 else "**still falling**"
+    else:
+        verdict = "**too noisy to tell**"
+    return f"{slope:+.2f} ({rise:+.1f} ± {band:.1f} across it)", verdict, flat
 
 
 def flatness_section(found: dict, tasks: list[str]) -> list[str]:
@@ -513,7 +527,7 @@ def flatness_section(found: dict, tasks: list[str]) -> list[str]:
             fit = second_half_fit(found[task].get(method, []))
             if fit is None:
                 continue
-            late, means, slope = fit
+            late, means, slope, _ = fit
             rows.append(f"| {task} | {LABELS[method]} | {_steps_label(late[-1])} | {len(found[task][method])} | "
                         f"{means[0]:.1f} → {means[-1]:.1f} | {slope:+.2f} |")
     if not rows:
@@ -560,8 +574,10 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "The same method, set and evaluation protocol at this table's budget and at a longer budget "
             "(`--longer` folders of `run_grid` results). The slope is that of a least-squares line through the "
             "second half of the longer run's seed-mean curve, per 1k steps, and how far that line moves across "
-            f"the half; *flat* means it moves less than {FLAT_POINTS:g} points. A score compares methods only "
-            "where the curve behind it is flat.", "",
+            "the half, ± twice its standard error from the scatter about the line; *flat* means it moves less "
+            f"than {FLAT_POINTS:g} points, *still rising/falling* that it moves more and the ± band excludes 0, "
+            "*too noisy to tell* that the band is wider than the move. A score compares methods only where the "
+            "curve behind it is flat.", "",
             "| task | method | budget | score | longer budget | score | second half: slope per 1k | "
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
 

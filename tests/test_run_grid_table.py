@@ -66,12 +66,12 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     mean, std = np.mean([seed0, 1.0]), np.std([seed0, 1.0])
     assert bc[5] == f"**{mean:.1f}** ± {std:.1f} (n=2)"
     # second half: evaluations 12k..20k; the seed mean rises 0.1 per 1k, 0.8 points across the 8k
-    assert bc[6] == "+0.10 (+0.8 across it)" and bc[7] == "flat"
+    assert bc[6] == "+0.10 (+0.8 ± 0.0 across it)" and bc[7] == "flat"
     td3bc = _row(text, task, "TD3+BC")
     assert td3bc[2] == "—" and td3bc[3] == "—"
-    assert td3bc[6] == "+1.00 (+8.0 across it)" and td3bc[7] == "**still rising**"
+    assert td3bc[6] == "+1.00 (+8.0 ± 0.0 across it)" and td3bc[7] == "**still rising**"
     iql = _row(text, task, "IQL")
-    assert iql[6] == "-0.50 (-4.0 across it)"
+    assert iql[6] == "-0.50 (-4.0 ± 0.0 across it)"
     assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
     assert _row(text, task, "TELS")[6:8] == ["—", "too few evaluations"]
     # a name an older run does not record reads as the default: no difference at the default, one elsewhere
@@ -168,3 +168,19 @@ def test_the_second_half_mean_reads_the_later_half_of_any_number_of_evaluations(
     assert second_half_mean([{"score": s} for s in (0.0, 10.0, 2.0, 4.0)]) == 3.0
     assert second_half_mean([{"score": s} for s in (0.0, 2.0, 4.0)]) == 3.0  # the middle one counts as later
     assert np.isnan(second_half_mean([]))
+
+
+@pytest.mark.parametrize("trend, verdict", [(0.0, "flat"), (3e-4, "**too noisy to tell**"), (3e-3, "**still rising**")])
+def test_the_verdict_weighs_a_trend_against_the_scatter_of_the_evaluations(trend, verdict):
+    # one seed, evaluations every 2k to 20k: a line of slope `trend` per step plus a ±6-point zigzag, whose
+    # scatter about the fitted line sets the band (checked against scipy's regression)
+    zigzag = {s: 6.0 * (-1) ** (s // 2000) for s in range(2000, 20001, 2000)}
+    if trend == 0.0:
+        zigzag = {s: 0.5 * v for s, v in zigzag.items()}
+    run = _record(0, 20000, 2000, lambda s: 30.0 + trend * s + zigzag[s])
+    late = [e for e in run["evaluations"] if e["step"] >= 12000]
+    fit = stats.linregress([e["step"] / 1000 for e in late], [e["score"] for e in late])
+    slope_cell, verdict_cell, flat = run_grid.curve_verdict([run])
+    rise, band = fit.slope * 8, 2 * fit.stderr * 8
+    assert slope_cell == f"{fit.slope:+.2f} ({rise:+.1f} ± {band:.1f} across it)"
+    assert verdict_cell == verdict and flat == (verdict == "flat")
