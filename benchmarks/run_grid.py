@@ -396,7 +396,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     lines += aggregate_section(found, results_dir / "plots", longer)
     lines += flatness_section(found, tasks)
     lines += longer_budget_section(found, longer, tasks, results_dir)
-    lines += longest_budget_section(found, longer, tasks, results_dir / "plots")
+    lines += longest_budget_section(found, longer, tasks, results_dir)
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
@@ -472,49 +472,48 @@ def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None
     return lines + ["", f"![aggregate](plots/{path.name})"]
 
 
-#: A curve counts as flat when the least-squares line through the second half of its evaluations (seed mean)
-#: moves less than this many points across that half.
+#: A curve counts as flat when the least-squares line through the second half of its evaluations (seed mean),
+#: with twice its standard error either side, moves less than this many points across that half.
 FLAT_POINTS = 2.0
 
 
 def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float, float] | None:
     """``(steps, seed-mean scores, slope per 1k steps, its standard error)`` of a least-squares line over the
-    second half of the evaluation steps every run shares, or ``None`` with fewer than four shared
-    evaluations; the standard error is NaN where the half has only two points."""
+    second half of the evaluation steps every run shares, or ``None`` with fewer than five shared
+    evaluations, so that the half has at least three points and the line a scatter to measure."""
     import numpy as np
 
     curves = [{e["step"]: e["score"] for e in r.get("evaluations", [])} for r in runs]
     steps = sorted(set.intersection(*(set(c) for c in curves))) if curves else []
-    if len(steps) < 4:
-        return None
     late = steps[len(steps) // 2:]
+    if len(late) < 3:
+        return None
     means = [statistics.fmean(c[s] for c in curves) for s in late]
     x, y = np.array(late) / 1000.0, np.array(means)
     slope, intercept = np.polyfit(x, y, 1)
     residuals = y - (slope * x + intercept)
     spread = float(((x - x.mean()) ** 2).sum())
-    se = math.sqrt((residuals**2).sum() / (len(x) - 2) / spread) if len(x) > 2 else math.nan
-    return late, means, float(slope), se
+    return late, means, float(slope), math.sqrt((residuals**2).sum() / (len(x) - 2) / spread)
 
 
 def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
     """``(slope cell, verdict, flat)`` for the seed-mean curve of ``runs``: the second half's least-squares
-    slope per 1k steps and how far that line moves across the half, ± twice its standard error. Flat when
-    it moves less than :data:`FLAT_POINTS`; still rising or falling when it moves more and the ± band
-    excludes 0; otherwise the evaluations are too noisy to tell (not flat either)."""
+    slope per 1k steps and how far that line moves across the half, ± twice its standard error (the band).
+    Flat when the line and its band stay within :data:`FLAT_POINTS` (``|move| + band``); otherwise still
+    rising or falling where the band excludes no move, and too noisy to show flat where it does not."""
     fit = second_half_fit(runs)
     if fit is None:
         return "—", "too few evaluations", False
     late, _, slope, se = fit
     span = (late[-1] - late[0]) / 1000.0
     rise, band = slope * span, 2 * se * span
-    flat = abs(rise) < FLAT_POINTS
+    flat = abs(rise) + band < FLAT_POINTS
     if flat:
         verdict = "flat"
-    elif abs(rise) > band:  # False for a NaN band: two points cannot show a trend
+    elif abs(rise) > band:
         verdict = "**still rising**" if rise > 0 else "**still falling**"
     else:
-        verdict = "**too noisy to tell**"
+        verdict = "**too noisy to show flat**"
     return f"{slope:+.2f} ({rise:+.1f} ± {band:.1f} across it)", verdict, flat
 
 
@@ -541,7 +540,11 @@ def flatness_section(found: dict, tasks: list[str]) -> list[str]:
 
 
 def _score_cell(runs: list[dict]) -> str:
-    scores = [r["final_normalized_score_mean"] for r in runs]
+    return _mean_cell([r["final_normalized_score_mean"] for r in runs])
+
+
+def _mean_cell(scores: list[float]) -> str:
+    """Mean ± population std over seeds, with n; "—" for none."""
     if not scores:
         return "—"
     mean, std = _mean_std(scores)
@@ -574,50 +577,62 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "The same method, set and evaluation protocol at this table's budget and at a longer budget "
             "(`--longer` folders of `run_grid` results). The slope is that of a least-squares line through the "
             "second half of the longer run's seed-mean curve, per 1k steps, and how far that line moves across "
-            "the half, ± twice its standard error from the scatter about the line; *flat* means it moves less "
-            f"than {FLAT_POINTS:g} points, *still rising/falling* that it moves more and the ± band excludes 0, "
-            "*too noisy to tell* that the band is wider than the move. A score compares methods only where the "
-            "curve behind it is flat.", "",
+            "the half, ± twice its standard error from the scatter about the line (the band); *flat* means the "
+            f"move and its band stay within {FLAT_POINTS:g} points, *still rising/falling* that the band excludes "
+            "no move, *too noisy to show flat* that the band is too wide to tell. A score compares methods only "
+            "where the curve behind it is flat.", "",
             "| task | method | budget | score | longer budget | score | second half: slope per 1k | "
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
 
 
-def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], folder: Path) -> list[str]:
+def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], results_dir: Path) -> list[str]:
     """Each method on each set at the longest budget it was run at, among this grid's and the ``--longer``
     folders' (at equal budgets, the folder named last), with every budget's verdict on its curve
-    (:func:`curve_verdict`): the longest, because a curve flat over a short run can still move later. The
-    score is the second-half mean (:func:`torchrl_tels.record.second_half_mean`), so that budgets with
-    different numbers of evaluations are read alike. Then the aggregate over the four shared sets, with the same intervals as
+    (:func:`curve_verdict`): the longest, because a curve flat over a short run can still move later. Runs
+    group by budget and evaluation protocol, so a score never mixes two protocols. The score is the
+    second-half mean (:func:`torchrl_tels.record.second_half_mean`), so that budgets with different numbers
+    of evaluations are read alike. Then the aggregate over the four shared sets, with the same intervals as
     :func:`aggregate_section` and a PNG of its own."""
     import numpy as np
 
-    grids = [found, *longer.values()]
+    grids = [(results_dir, found), *longer.items()]
     picks, rows = {}, []
     for task in tasks + sorted({t for g in longer.values() for t in g} - set(tasks)):
         for method in TABLE_COLUMNS:
-            candidates = sorted(((r["budget"]["policy_steps"], i) for i, g in enumerate(grids)
-                                 for r in g.get(task, {}).get(method, [])))
-            tried = []
-            for steps, i in dict.fromkeys(candidates):
-                runs = [r for r in grids[i][task][method] if r["budget"]["policy_steps"] == steps]
-                tried.append((steps, runs, *curve_verdict(runs)))
-            if not tried:
+            groups: dict[tuple, list] = {}
+            for i, (grid_dir, grid) in enumerate(grids):
+                for r in grid.get(task, {}).get(method, []):
+                    if not r.get("evaluations"):
+                        print(f"warning: {LABELS[method]} {task} seed {r.get('seed')} in {repo_relative(grid_dir)} "
+                              "has no evaluations; left out", file=sys.stderr)
+                        continue
+                    budget = r["budget"]
+                    groups.setdefault((budget["policy_steps"], i, budget["eval_interval"], budget["eval_episodes"]),
+                                      []).append(r)
+            if not groups:
                 continue
-            steps, runs, _, _, flat = tried[-1]
-            picks[task, method] = steps, runs, flat
-            halves = [second_half_mean(r["evaluations"]) for r in runs]
-            mean, std = _mean_std(halves)
-            rows.append(f"| {task} | {LABELS[method]} | "
-                        + " · ".join(f"{_steps_label(t[0])}: {t[3]}" for t in tried)
-                        + f" | {_steps_label(steps)}{'' if flat else ' (**not flat**)'} | "
-                        f"**{mean:.1f}** ± {std:.1f} (n={len(halves)}) |")
+            several = {steps for steps, *_ in groups if sum(k[0] == steps for k in groups) > 1}
+            tried = []
+            for (steps, i, interval, episodes), runs in sorted(groups.items()):
+                label = _steps_label(steps)
+                if steps in several:  # say which folder and protocol
+                    label += f" ({repo_relative(grids[i][0])}, {episodes} ep. every {_steps_label(interval)})"
+                tried.append((steps, label, runs, curve_verdict(runs)[1:]))
+            steps, label, runs, (_, flat) = tried[-1]
+            differ = _differing_hyperparameters(runs, method, task)
+            picks[task, method] = steps, runs, flat, differ
+            read_at = label + ("" if flat else " (**not shown flat**)")
+            if differ:
+                read_at += f"; **hyperparameters differ: {', '.join(differ)}**"
+            rows.append(f"| {task} | {LABELS[method]} | " + " · ".join(f"{t[1]}: {t[3][0]}" for t in tried)
+                        + f" | {read_at} | {_mean_cell([second_half_mean(r['evaluations']) for r in runs])} |")
     if not rows:
         return []
     lines = ["", "## Each method at its longest budget", "",
              "Each method on each set at the longest budget it was run at, among this table's and the "
              "`--longer` folders', with the verdict on the curve at every budget run (flat: the second half's "
              f"least-squares line moves less than {FLAT_POINTS:g} points). A score is converged where the "
-             "longest curve is flat; where it is not, the row says so. The score is the mean of each seed's "
+             "longest curve is shown flat; where it is not, the row says so. The score is the mean of each seed's "
              "later half of evaluations (Table 1's last 10 of 20, whatever the number of evaluations), "
              "mean ± std over seeds.", "",
              "| task | method | budgets run: verdict | read at | second-half score |", "|---|---|---|---|---|",
@@ -634,14 +649,15 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
         budgets = sorted({picks[task, method][0] for task in AGGREGATE_TASKS})
         not_flat = [task for task in AGGREGATE_TASKS if not picks[task, method][2]]
         label = (f"{LABELS[method]} at " + " / ".join(_steps_label(b) for b in budgets) + " steps"
-                 + (f", not flat on {len(not_flat)} of {len(AGGREGATE_TASKS)}" if not_flat else ""))
+                 + (f", not shown flat on {len(not_flat)} of {len(AGGREGATE_TASKS)}" if not_flat else "")
+                 + (", **hyperparameters differ**" if any(picks[t, method][3] for t in AGGREGATE_TASKS) else ""))
         matrices[label] = np.array([[d[s] for d in by_task] for s in seeds])
     if not matrices:
         return lines
     estimates = _interval_estimates(matrices)
     lines += ["", "Over the four shared sets, each method at those budgets (second-half scores; seeds present on "
               "all four sets):", "", *_AGGREGATE_HEADER, *_aggregate_rows(matrices, estimates)]
-    path = _aggregate_plot(matrices, estimates, folder, "aggregate_longest_budget.png")
+    path = _aggregate_plot(matrices, estimates, results_dir / "plots", "aggregate_longest_budget.png")
     return lines + ["", f"![aggregate at the longest budgets](plots/{path.name})"]
 
 

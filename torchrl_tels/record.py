@@ -8,7 +8,7 @@ from typing import Mapping
 
 from torchrl.record.loggers import CSVLogger
 
-__all__ = ["RunLogger", "write_results", "write_seeds_summary"]
+__all__ = ["RunLogger", "second_half_mean", "write_results", "write_seeds_summary"]
 
 WANDB_MODES = ("online", "offline", "disabled")
 
