@@ -28,6 +28,7 @@ mean of the last 10 evaluations).
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import math
 import os
@@ -500,7 +501,8 @@ def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
     """``(slope cell, verdict, flat)`` for the seed-mean curve of ``runs``: the second half's least-squares
     slope per 1k steps and how far that line moves across the half, ± twice its standard error (the band).
     Flat when the line and its band stay within :data:`FLAT_POINTS` (``|move| + band``); otherwise still
-    rising or falling where the band excludes no move, and too noisy to show flat where it does not."""
+    rising or falling where the band excludes no move, and "no trend detected" where it does not: the
+    evaluations are too noisy to tell a flat curve from a moving one."""
     fit = second_half_fit(runs)
     if fit is None:
         return "—", "too few evaluations", False
@@ -513,7 +515,7 @@ def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
     elif abs(rise) > band:
         verdict = "**still rising**" if rise > 0 else "**still falling**"
     else:
-        verdict = "**too noisy to show flat**"
+        verdict = "no trend detected"
     return f"{slope:+.2f} ({rise:+.1f} ± {band:.1f} across it)", verdict, flat
 
 
@@ -579,8 +581,8 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "second half of the longer run's seed-mean curve, per 1k steps, and how far that line moves across "
             "the half, ± twice its standard error from the scatter about the line (the band); *flat* means the "
             f"move and its band stay within {FLAT_POINTS:g} points, *still rising/falling* that the band excludes "
-            "no move, *too noisy to show flat* that the band is too wide to tell. A score compares methods only "
-            "where the curve behind it is flat.", "",
+            "no move, *no trend detected* that the band holds no move but is too wide to call the curve flat. "
+            "A score compares methods only where the curve behind it is flat.", "",
             "| task | method | budget | score | longer budget | score | second half: slope per 1k | "
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
 
@@ -618,10 +620,10 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
                 if steps in several:  # say which folder and protocol
                     label += f" ({repo_relative(grids[i][0])}, {episodes} ep. every {_steps_label(interval)})"
                 tried.append((steps, label, runs, curve_verdict(runs)[1:]))
-            steps, label, runs, (_, flat) = tried[-1]
+            steps, label, runs, (verdict, flat) = tried[-1]
             differ = _differing_hyperparameters(runs, method, task)
-            picks[task, method] = steps, runs, flat, differ
-            read_at = label + ("" if flat else " (**not shown flat**)")
+            picks[task, method] = steps, runs, verdict.strip("*"), differ
+            read_at = label + ("" if flat else f" ({verdict})")
             if differ:
                 read_at += f"; **hyperparameters differ: {', '.join(differ)}**"
             rows.append(f"| {task} | {LABELS[method]} | " + " · ".join(f"{t[1]}: {t[3][0]}" for t in tried)
@@ -632,7 +634,7 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
              "Each method on each set at the longest budget it was run at, among this table's and the "
              "`--longer` folders', with the verdict on the curve at every budget run (flat: the second half's "
              f"least-squares line moves less than {FLAT_POINTS:g} points). A score is converged where the "
-             "longest curve is shown flat; where it is not, the row says so. The score is the mean of each seed's "
+             "longest curve is flat; where it is not, the row gives the verdict. The score is the mean of each seed's "
              "later half of evaluations (Table 1's last 10 of 20, whatever the number of evaluations), "
              "mean ± std over seeds.", "",
              "| task | method | budgets run: verdict | read at | second-half score |", "|---|---|---|---|---|",
@@ -647,9 +649,10 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
         if not seeds:
             continue
         budgets = sorted({picks[task, method][0] for task in AGGREGATE_TASKS})
-        not_flat = [task for task in AGGREGATE_TASKS if not picks[task, method][2]]
+        verdicts = collections.Counter(picks[task, method][2] for task in AGGREGATE_TASKS)
         label = (f"{LABELS[method]} at " + " / ".join(_steps_label(b) for b in budgets) + " steps"
-                 + (f", not shown flat on {len(not_flat)} of {len(AGGREGATE_TASKS)}" if not_flat else "")
+                 + "".join(f", {verdict} on {n} of {len(AGGREGATE_TASKS)}"
+                           for verdict, n in sorted(verdicts.items()) if verdict != "flat")
                  + (", **hyperparameters differ**" if any(picks[t, method][3] for t in AGGREGATE_TASKS) else ""))
         matrices[label] = np.array([[d[s] for d in by_task] for s in seeds])
     if not matrices:
