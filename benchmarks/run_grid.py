@@ -632,8 +632,9 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
         return []
     lines = ["", "## Each method at its longest budget", "",
              "Each method on each set at the longest budget it was run at, among this table's and the "
-             "`--longer` folders', with the verdict on the curve at every budget run (flat: the second half's "
-             f"least-squares line moves less than {FLAT_POINTS:g} points). A score is converged where the "
+             "`--longer` folders', with the verdict on the curve at every budget run (as in the section above: "
+             "flat when the second half's least-squares line, ± twice its standard error, moves less than "
+             f"{FLAT_POINTS:g} points). A score is converged where the "
              "longest curve is flat; where it is not, the row gives the verdict. The score is the mean of each seed's "
              "later half of evaluations (Table 1's last 10 of 20, whatever the number of evaluations), "
              "mean ± std over seeds.", "",
