@@ -528,17 +528,19 @@ def flatness_section(found: dict, tasks: list[str]) -> list[str]:
             fit = second_half_fit(found[task].get(method, []))
             if fit is None:
                 continue
-            late, means, slope, _ = fit
+            late, means, _, _ = fit
+            slope_cell, verdict, _ = curve_verdict(found[task][method])
             rows.append(f"| {task} | {LABELS[method]} | {_steps_label(late[-1])} | {len(found[task][method])} | "
-                        f"{means[0]:.1f} → {means[-1]:.1f} | {slope:+.2f} |")
+                        f"{means[0]:.1f} → {means[-1]:.1f} | {slope_cell} | {verdict} |")
     if not rows:
         return []
     return ["", "## Have the learning curves flattened?", "",
-            "For each method and set: the seed-mean evaluation score over the second half of training and the "
-            "slope of a least-squares line through it (points per 1k steps). A slope far from 0 means the "
-            "budget stops the method while it is still changing.", "",
-            "| task | method | budget | seeds | second half: first → last evaluation | slope per 1k steps |",
-            "|---|---|---|---|---|---|", *rows]
+            "For each method and set: the seed-mean evaluation score over the second half of training, the "
+            "slope of a least-squares line through it (points per 1k steps) with how far it moves across the "
+            "half ± twice its standard error, and the verdict (flat when the move "
+            f"and its band stay within {FLAT_POINTS:g} points).", "",
+            "| task | method | budget | seeds | second half: first → last evaluation | slope per 1k | verdict |",
+            "|---|---|---|---|---|---|---|", *rows]
 
 
 def _score_cell(runs: list[dict]) -> str:

@@ -74,6 +74,8 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     assert iql[6] == "-0.50 (-4.0 ± 0.0 across it)"
     assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
     assert _row(text, task, "TELS")[6:8] == ["—", "too few evaluations"]
+    flatness = text.split("## Have the learning curves flattened?")[1].split("\n## ")[0]
+    assert f"| {task} | BC | 5k | 2 | 30.5 → 30.5 | +0.00 (+0.0 ± 0.0 across it) | flat |" in flatness
     # a name an older run does not record reads as the default: no difference at the default, one elsewhere
     older, at_default = {"hyperparameters": {"lr": 3e-4}}, {"hyperparameters": {"lr": 3e-4, "reward_scale": 1.0}}
     changed = {"hyperparameters": {"lr": 3e-4, "reward_scale": "return_range"}}
