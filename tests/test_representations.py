@@ -54,3 +54,20 @@ def test_contrastive_encoder_finds_the_next_state():
         z_next = nn.functional.normalize(tsidm.encode_state(batch["next", "observation"]), dim=-1)
     accuracy = ((z @ z_next.T).argmax(-1) == torch.arange(256)).float().mean().item()
     assert accuracy > 0.2, accuracy
+
+
+def test_a_standardized_copy_has_unit_latents_and_the_same_encoder_otherwise():
+    """Over the data it was fitted on, each latent dimension has mean 0 and std 1, and it is the original
+    φ_s(s) shifted and scaled per dimension; every other map is the original's."""
+    torch.manual_seed(0)
+    tsidm = TSIDM(4, 2, encoder_cells=[8], decoder_cells=[8], inverse_cells=[8], action_decoder_cells=[8],
+                  dynamics_cells=[8]).eval()
+    observations = 3.0 * torch.randn(500, 4) + 1.0
+    copy = representations.with_standardized_latent(tsidm, observations)
+    with torch.no_grad():
+        raw, standardized = tsidm.encode_state(observations), copy.encode_state(observations)
+    torch.testing.assert_close(standardized.mean(0), torch.zeros(4), atol=1e-5, rtol=0)
+    torch.testing.assert_close(standardized.std(0), torch.ones(4), atol=1e-5, rtol=0)
+    torch.testing.assert_close(standardized, (raw - raw.mean(0)) / raw.std(0), atol=1e-5, rtol=0)
+    z = torch.randn(7, 4)
+    torch.testing.assert_close(copy.decode_state(z), tsidm.decode_state(z))
