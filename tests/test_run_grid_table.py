@@ -47,9 +47,18 @@ def grids(tmp_path):
     return short, longer
 
 
-def _row(text: str, task: str, label: str) -> list[str]:
-    section = text.split("## Each method at this budget and at a longer one")[1].split("\n## ")[0]
-    rows = [line for line in section.splitlines() if line.startswith(f"| {task} | {label} |")]
+LONGER = "Each method at this budget and at a longer one"
+LONGEST = "Each method at its longest budget"
+
+
+def _section(text: str, heading: str) -> str:
+    """The body of the ``## heading`` section of a rendered table."""
+    return text.split(f"## {heading}")[1].split("\n## ")[0]
+
+
+def _row(text: str, heading: str, task: str, label: str) -> list[str]:
+    """The cells of the one row for ``task`` and method ``label`` in the ``heading`` section."""
+    rows = [line for line in _section(text, heading).splitlines() if line.startswith(f"| {task} | {label} |")]
     assert len(rows) == 1, rows
     return [cell.strip() for cell in rows[0].strip("|").split("|")]
 
@@ -58,7 +67,7 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     short, longer = grids
     text = run_grid.render_table(short, (longer,)).read_text()
     task = TASKS[0]
-    bc = _row(text, task, "BC")
+    bc = _row(text, LONGER, task, "BC")
     assert bc[2].startswith("5k steps") and bc[4].startswith("20k steps")
     assert bc[3] == "**30.5** ± 0.5 (n=2)"
     # final score: mean of all 10 evaluations (2k..20k); seed 0 is 2e-4 s, seed 1 is 1
@@ -67,14 +76,14 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     assert bc[5] == f"**{mean:.1f}** ± {std:.1f} (n=2)"
     # second half: evaluations 12k..20k; the seed mean rises 0.1 per 1k, 0.8 points across the 8k
     assert bc[6] == "+0.10 (+0.8 ± 0.0 across it)" and bc[7] == "flat"
-    td3bc = _row(text, task, "TD3+BC")
+    td3bc = _row(text, LONGER, task, "TD3+BC")
     assert td3bc[2] == "—" and td3bc[3] == "—"
     assert td3bc[6] == "+1.00 (+8.0 ± 0.0 across it)" and td3bc[7] == "**still rising**"
-    iql = _row(text, task, "IQL")
+    iql = _row(text, LONGER, task, "IQL")
     assert iql[6] == "-0.50 (-4.0 ± 0.0 across it)"
     assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
-    assert _row(text, task, "TELS")[6:8] == ["—", "too few evaluations"]
-    flatness = text.split("## Have the learning curves flattened?")[1].split("\n## ")[0]
+    assert _row(text, LONGER, task, "TELS")[6:8] == ["—", "too few evaluations"]
+    flatness = _section(text, "Have the learning curves flattened?")
     assert f"| {task} | BC | 5k | 2 | 30.5 → 30.5 | +0.00 (+0.0 ± 0.0 across it) | flat |" in flatness
     # a name an older run does not record reads as the default: no difference at the default, one elsewhere
     older, at_default = {"hyperparameters": {"lr": 3e-4}}, {"hyperparameters": {"lr": 3e-4, "reward_scale": 1.0}}
@@ -106,7 +115,7 @@ def test_two_longer_folders_at_one_budget_keep_a_row_each(grids, tmp_path):
         for seed in (0, 1):
             _write(twin, "bc", task, _record(seed, 20000, 2000, lambda s: 99.0))
     text = run_grid.render_table(short, (longer, twin)).read_text()
-    lines = text.split("## Aggregate over the four shared sets")[1].split("\n## ")[0].splitlines()
+    lines = _section(text, "Aggregate over the four shared sets").splitlines()
     rows = [line for line in lines if line.startswith("| BC at 20k steps")]
     assert len(rows) == 2 and "**99.0**" in rows[1] and "twin" in rows[1] and "**99.0**" not in rows[0]
 
@@ -129,13 +138,6 @@ def test_a_table_of_changed_baselines_names_the_change(grids):
     assert "**Changed from the baselines' defaults:** IQL `reward_scale=return_range`." in text
 
 
-def _flat_row(text: str, task: str, label: str) -> list[str]:
-    section = text.split("## Each method at its longest budget")[1].split("\n## ")[0]
-    rows = [line for line in section.splitlines() if line.startswith(f"| {task} | {label} |")]
-    assert len(rows) == 1, rows
-    return [cell.strip() for cell in rows[0].strip("|").split("|")]
-
-
 def test_each_method_is_read_at_its_longest_budget_with_every_verdict(grids):
     short, longer = grids
     for i, task in enumerate(TASKS):
@@ -148,17 +150,18 @@ def test_each_method_is_read_at_its_longest_budget_with_every_verdict(grids):
     text = run_grid.render_table(short, (longer,)).read_text()
     task = TASKS[0]
     # BC at 20k: seed 0 is 2e-4 s, read over 12k..20k (mean step 16k), seed 1 is 1
-    assert _flat_row(text, task, "BC")[2:] == ["5k: flat · 20k: flat", "20k", "**2.1** ± 1.1 (n=2)"]
-    assert _flat_row(text, task, "TD3+BC")[2:] == ["5k: **still rising** · 20k: flat", "20k", "**0.5** ± 0.5 (n=2)"]
+    assert _row(text, LONGEST, task, "BC")[2:] == ["5k: flat · 20k: flat", "20k", "**2.1** ± 1.1 (n=2)"]
+    assert _row(text, LONGEST, task, "TD3+BC")[2:] == ["5k: **still rising** · 20k: flat", "20k",
+                                                    "**0.5** ± 0.5 (n=2)"]
     # flat over a short run, falling over a longer one: read at the longer, marked
-    assert _flat_row(text, task, "IQL")[2:] == ["5k: flat · 20k: **still falling**", "20k (**still falling**)",
+    assert _row(text, LONGEST, task, "IQL")[2:] == ["5k: flat · 20k: **still falling**", "20k (**still falling**)",
                                                 "**32.0** ± 0.0 (n=2)"]
     # two evaluations are too few to judge: the longest budget, marked, read at its later evaluation
-    assert _flat_row(text, task, "TELS")[2:] == ["4k: too few evaluations", "4k (too few evaluations)",
+    assert _row(text, LONGEST, task, "TELS")[2:] == ["4k: too few evaluations", "4k (too few evaluations)",
                                                  "**1.0** ± 0.0 (n=2)"]
     scores = np.array([[10.0 * i**2 + seed for i in range(len(TASKS))] for seed in (0, 1)])
     iqm, mean = stats.trim_mean(scores.reshape(-1), 0.25), scores.mean()
-    section = text.split("## Each method at its longest budget")[1]
+    section = _section(text, LONGEST)
     row = next(line for line in section.splitlines() if line.startswith("| TD3+BC at 20k steps |"))
     assert re.search(rf"\| 2 × 4 \| \*\*{iqm:.1f}\*\* \[[^]]*\] \| \*\*{mean:.1f}\*\* \[", row), (row, iqm, mean)
     assert any(line.startswith("| TELS at 4k steps, too few evaluations on 4 of 4 |") for line in section.splitlines())
@@ -197,12 +200,12 @@ def test_a_longest_budget_keeps_protocols_and_hyperparameters_apart(grids, capsy
     _write(longer, "bc", task, {**_record(3, 20000, 2000, lambda s: 0.0), "evaluations": []})
     text = run_grid.render_table(short, (longer,)).read_text()
     assert "BC hopper-medium-v2-10k seed 3" in capsys.readouterr().err
-    cells = _flat_row(text, task, "BC")
+    cells = _row(text, LONGEST, task, "BC")
     assert cells[2].count("20k (") == 2 and "10 ep. every 4k" in cells[2] and "10 ep. every 2k" in cells[2]
     assert cells[4] == "**70.0** (n=1)"  # the later protocol's one run (the order is fixed), never the two mixed
-    iql = _flat_row(text, task, "IQL")
+    iql = _row(text, LONGEST, task, "IQL")
     assert iql[3] == "20k (**still falling**)"  # every 20k IQL run has lr=1e-3: nothing differs among them
     _write(longer, "iql", task, _record(2, 20000, 2000, lambda s: 40.0 - 5e-4 * s))
     text = run_grid.render_table(short, (longer,)).read_text()
-    assert _flat_row(text, task, "IQL")[3] == "20k (**still falling**); **hyperparameters differ: lr**"
+    assert _row(text, LONGEST, task, "IQL")[3] == "20k (**still falling**); **hyperparameters differ: lr**"
     assert "IQL at 20k steps, still falling on 4 of 4, **hyperparameters differ** |" in text
