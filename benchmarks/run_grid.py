@@ -503,7 +503,11 @@ def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
     Flat when the line and its band stay within :data:`FLAT_POINTS` (``|move| + band``); otherwise still
     rising or falling where the band excludes no move, and "no trend detected" where it does not: the
     evaluations are too noisy to tell a flat curve from a moving one."""
-    fit = second_half_fit(runs)
+    return _verdict_of_fit(second_half_fit(runs))
+
+
+def _verdict_of_fit(fit) -> tuple[str, str, bool]:
+    """:func:`curve_verdict` of a :func:`second_half_fit` already computed."""
     if fit is None:
         return "—", "too few evaluations", False
     late, _, slope, se = fit
@@ -529,7 +533,7 @@ def flatness_section(found: dict, tasks: list[str]) -> list[str]:
             if fit is None:
                 continue
             late, means, _, _ = fit
-            slope_cell, verdict, _ = curve_verdict(found[task][method])
+            slope_cell, verdict, _ = _verdict_of_fit(fit)
             rows.append(f"| {task} | {LABELS[method]} | {_steps_label(late[-1])} | {len(found[task][method])} | "
                         f"{means[0]:.1f} → {means[-1]:.1f} | {slope_cell} | {verdict} |")
     if not rows:
