@@ -497,6 +497,28 @@ def second_half_fit(runs: list[dict]) -> tuple[list[int], list[float], float, fl
     return late, means, float(slope), math.sqrt((residuals**2).sum() / (len(x) - 2) / spread)
 
 
+def scatter_over_episode_noise(runs: list[dict], fit) -> float | None:
+    """How much of the scatter about the second half's line (:func:`second_half_fit`) the sampling of
+    episodes explains: the line's residual variance over the variance each seed-mean point would have from
+    its episodes alone (each run's episode variance over its episode count, summed over runs, over runs²).
+    Near 1, evaluation noise makes the band, and more episodes per evaluation would narrow it. Well above 1,
+    the policy itself changes from one evaluation to the next (or the curve bends): more episodes do not
+    average that away; more seeds or more evaluations do. ``None`` without per-episode scores."""
+    if fit is None:
+        return None
+    late, _, _, se = fit
+    x = [s / 1000.0 for s in late]
+    residual_var = se**2 * sum((v - statistics.fmean(x)) ** 2 for v in x)
+    point_vars = []
+    for step in late:
+        episodes = [e.get("scores") or [] for r in runs for e in r["evaluations"] if e["step"] == step]
+        if any(len(scores) < 2 for scores in episodes):
+            return None
+        point_vars.append(sum(statistics.variance(s) / len(s) for s in episodes) / len(episodes) ** 2)
+    noise_var = statistics.fmean(point_vars)
+    return residual_var / noise_var if noise_var > 0 else None
+
+
 def curve_verdict(runs: list[dict]) -> tuple[str, str, bool]:
     """``(slope cell, verdict, flat)`` for the seed-mean curve of ``runs``: the second half's least-squares
     slope per 1k steps and how far that line moves across the half, ± twice its standard error (the band).
@@ -534,17 +556,23 @@ def flatness_section(found: dict, tasks: list[str]) -> list[str]:
                 continue
             late, means, _, _ = fit
             slope_cell, verdict, _ = _verdict_of_fit(fit)
+            ratio = scatter_over_episode_noise(found[task][method], fit)
             rows.append(f"| {task} | {LABELS[method]} | {_steps_label(late[-1])} | {len(found[task][method])} | "
-                        f"{means[0]:.1f} → {means[-1]:.1f} | {slope_cell} | {verdict} |")
+                        f"{means[0]:.1f} → {means[-1]:.1f} | {slope_cell} | {verdict} | "
+                        + ("—" if ratio is None else f"{ratio:.1f}") + " |")
     if not rows:
         return []
     return ["", "## Have the learning curves flattened?", "",
             "For each method and set: the seed-mean evaluation score over the second half of training, the "
             "slope of a least-squares line through it (points per 1k steps) with how far it moves across the "
             "half ± twice its standard error, and the verdict (flat when the move "
-            f"and its band stay within {FLAT_POINTS:g} points).", "",
-            "| task | method | budget | seeds | second half: first → last evaluation | slope per 1k | verdict |",
-            "|---|---|---|---|---|---|---|", *rows]
+            f"and its band stay within {FLAT_POINTS:g} points). The last column divides the scatter about that "
+            "line by the part of it that the sampling of episodes explains: near 1, more episodes per "
+            "evaluation would narrow the band; well above 1, the policy changes from one evaluation to the "
+            "next, which more episodes do not average away (more seeds do).", "",
+            "| task | method | budget | seeds | second half: first → last evaluation | slope per 1k | verdict "
+            "| scatter / episode noise |",
+            "|---|---|---|---|---|---|---|---|", *rows]
 
 
 def _score_cell(runs: list[dict]) -> str:

@@ -84,7 +84,8 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     assert iql[7] == "**still falling**; **hyperparameters differ: lr**"
     assert _row(text, LONGER, task, "TELS")[6:8] == ["—", "too few evaluations"]
     flatness = _section(text, "Have the learning curves flattened?")
-    assert f"| {task} | BC | 5k | 2 | 30.5 → 30.5 | +0.00 (+0.0 ± 0.0 across it) | flat |" in flatness
+    # the synthetic runs record no per-episode scores, so the scatter cannot be split
+    assert f"| {task} | BC | 5k | 2 | 30.5 → 30.5 | +0.00 (+0.0 ± 0.0 across it) | flat | — |" in flatness
     # a name an older run does not record reads as the default: no difference at the default, one elsewhere
     older, at_default = {"hyperparameters": {"lr": 3e-4}}, {"hyperparameters": {"lr": 3e-4, "reward_scale": 1.0}}
     changed = {"hyperparameters": {"lr": 3e-4, "reward_scale": "return_range"}}
@@ -190,6 +191,34 @@ def test_the_verdict_weighs_a_trend_against_the_scatter_of_the_evaluations(trend
     rise, band = fit.slope * 8, 2 * fit.stderr * 8
     assert slope_cell == f"{fit.slope:+.2f} ({rise:+.1f} ± {band:.1f} across it)"
     assert verdict_cell == verdict and flat == (verdict == "flat")
+
+
+def test_the_scatter_is_split_into_episode_noise_and_the_rest():
+    # two seeds, evaluations every 2k to 20k, each of four episodes at mean ± spread (so each episode variance
+    # is known); the seed means zigzag ±zigzag about a line, which sets the residual variance
+    rng = np.random.default_rng(0)
+    spreads = {0: 2.0, 1: 4.0}
+    runs = []
+    for seed, spread in spreads.items():
+        evaluations = []
+        for step in range(2000, 20001, 2000):
+            mean = 30.0 + 1e-3 * step + 3.0 * (-1) ** (step // 2000) + rng.normal()
+            evaluations.append({"step": step, "score": mean, "scores": [mean - spread, mean + spread] * 2})
+        runs.append({"seed": seed, "evaluations": evaluations})
+    fit = run_grid.second_half_fit(runs)
+    late = [s for s in range(12000, 20001, 2000)]
+    means = [np.mean([e["score"] for r in runs for e in r["evaluations"] if e["step"] == s]) for s in late]
+    x = np.array(late) / 1000
+    residuals = np.array(means) - np.polyval(np.polyfit(x, means, 1), x)
+    residual_var = (residuals**2).sum() / (len(late) - 2)
+    # each run's episodes: variance (ddof 1) of [m-a, m+a, m-a, m+a] is 4a²/3, over 4 episodes; two runs
+    noise_var = sum(4 * a**2 / 3 / 4 for a in spreads.values()) / 2**2
+    assert run_grid.scatter_over_episode_noise(runs, fit) == pytest.approx(residual_var / noise_var)
+    # one episode per evaluation leaves the episode noise unknown
+    for r in runs:
+        for e in r["evaluations"]:
+            e["scores"] = e["scores"][:1]
+    assert run_grid.scatter_over_episode_noise(runs, fit) is None
 
 
 def test_a_longest_budget_keeps_protocols_and_hyperparameters_apart(grids, capsys):
