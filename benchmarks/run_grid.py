@@ -438,7 +438,9 @@ def _interval_estimates(matrices: dict) -> dict:
 def _aggregate_rows(matrices: dict, estimates: dict) -> list[str]:
     rows = []
     for label, scores in matrices.items():
-        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in estimates[label]]
+        # one seed per task leaves the bootstrap nothing to resample: its interval would be a point
+        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" if scores.shape[0] > 1 else f"**{p:.1f}** (one seed: no interval)"
+                 for p, lo, hi in estimates[label]]
         rows.append(f"| {label} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
     return rows
 

@@ -193,6 +193,15 @@ def test_the_verdict_weighs_a_trend_against_the_scatter_of_the_evaluations(trend
     assert verdict_cell == verdict and flat == (verdict == "flat")
 
 
+def test_an_aggregate_over_one_seed_gives_no_interval():
+    matrices = {"one seed": np.array([[10.0, 20.0, 30.0, 40.0]]), "two seeds": np.array([[10.0, 20.0], [12.0, 26.0]])}
+    one, two = run_grid._aggregate_rows(matrices, run_grid._interval_estimates(matrices))
+    assert one == "| one seed | 1 × 4 | **25.0** (one seed: no interval) | **25.0** (one seed: no interval) |"
+    # two seeds: the mean of the four scores, with an interval that is not a point
+    low, high = map(float, re.findall(r"\[([\d.]+), ([\d.]+)\]", two)[1])
+    assert "**17.0** [" in two and low < 17.0 < high
+
+
 def test_the_scatter_is_split_into_episode_noise_and_the_rest():
     # two seeds, evaluations every 2k to 20k, each of four episodes at mean ± spread (so each episode variance
     # is known); the seed means zigzag ±zigzag about a line, which sets the residual variance
