@@ -204,7 +204,7 @@ def test_an_aggregate_over_one_seed_gives_no_interval():
 
 def test_the_scatter_is_split_into_episode_noise_and_the_rest():
     # two seeds, evaluations every 2k to 20k, each of four episodes at mean ± spread (so each episode variance
-    # is known); the seed means zigzag ±zigzag about a line, which sets the residual variance
+    # is known); the seed means zigzag ±3 (plus noise) about a line, which sets the residual variance
     rng = np.random.default_rng(0)
     spreads = {0: 2.0, 1: 4.0}
     runs = []
@@ -215,7 +215,7 @@ def test_the_scatter_is_split_into_episode_noise_and_the_rest():
             evaluations.append({"step": step, "score": mean, "scores": [mean - spread, mean + spread] * 2})
         runs.append({"seed": seed, "evaluations": evaluations})
     fit = run_grid.second_half_fit(runs)
-    late = [s for s in range(12000, 20001, 2000)]
+    late = list(range(12000, 20001, 2000))
     means = [np.mean([e["score"] for r in runs for e in r["evaluations"] if e["step"] == s]) for s in late]
     x = np.array(late) / 1000
     residuals = np.array(means) - np.polyval(np.polyfit(x, means, 1), x)
