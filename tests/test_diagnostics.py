@@ -120,6 +120,8 @@ def test_action_chain_statistics_split_the_error_between_tsidm_and_guide():
         (step.pow(2).sum(-1).mean() / data_step.pow(2).sum(-1).mean()).sqrt().item(), rel=1e-5)
     assert stats["guide_step_cosine"] == pytest.approx(
         torch.nn.functional.cosine_similarity(step, data_step, dim=-1).mean().item(), rel=1e-5)
+    assert stats["guide_error_ratio"] == pytest.approx(
+        ((2 * z - z_next).pow(2).sum(-1).mean() / data_step.pow(2).sum(-1).mean()).sqrt().item(), rel=1e-5)
 
     # A guide that proposes the data's next latent adds no error of its own.
     oracle = TensorDictModule(Oracle(z, z_next), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
@@ -127,6 +129,11 @@ def test_action_chain_statistics_split_the_error_between_tsidm_and_guide():
     assert stats["actor_action_mse"] == pytest.approx(stats["inverse_action_mse"], rel=1e-5)
     assert stats["guide_step_ratio"] == pytest.approx(1.0, rel=1e-5)
     assert stats["guide_step_cosine"] == pytest.approx(1.0, abs=1e-5)
+    assert stats["guide_error_ratio"] == pytest.approx(0.0, abs=1e-5)
+
+    # A guide that stays put errs by exactly the data's step.
+    still = TensorDictModule(Offset(torch.zeros(z.shape[-1])), in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY])
+    assert action_chain_statistics(make_tels_actor(tsidm, still), data)["guide_error_ratio"] == pytest.approx(1.0, rel=1e-5)
 
     # The TS-IDM's part is Eq. (11) on the true next latent, whatever the head does with proposals.
     reencoding = make_tels_actor(tsidm, oracle, reencode_proposal=True)

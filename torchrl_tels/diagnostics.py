@@ -67,6 +67,10 @@ def action_chain_statistics(actor: TensorDictSequential, data: TensorDictBase,
     * ``guide_step_ratio``: :math:`\sqrt{\mathbb E\|\pi_g(z_s) - z_s\|^2 / \mathbb E\|z_{s'} - z_s\|^2}`,
       1 when the guide proposes steps of the data's size.
     * ``guide_step_cosine``: mean cosine between the proposed step and the data's step.
+    * ``guide_error_ratio``: :math:`\sqrt{\mathbb E\|\pi_g(z_s) - z_{s'}\|^2 / \mathbb E\|z_{s'} - z_s\|^2}`,
+      the guide's error in predicting the next latent against the latent step: 0 for a perfect
+      prediction, 1 for one no better than "stay put". On transitions held out from training it
+      says whether the guide generalizes.
 
     ``actor`` is :func:`~torchrl_tels.modules.make_tels_actor`'s chain from observations (encoder,
     guide, Eq. 11 head), run deterministically on its own device.
@@ -77,7 +81,7 @@ def action_chain_statistics(actor: TensorDictSequential, data: TensorDictBase,
                          "(make_tels_actor(..., from_latent=False)): encoder, guide, Eq. (11) head.")
     observation_key, action_key = actor[0].in_keys[0], actor[-1].out_keys[0]
     tsidm, device = head.tsidm, next(actor.parameters()).device
-    sums = dict.fromkeys(("inverse", "actor", "guide_step", "data_step", "cosine"), 0.0)
+    sums = dict.fromkeys(("inverse", "actor", "guide_step", "data_step", "cosine", "guide_error"), 0.0)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for batch in data.split(batch_size):
             batch = batch.to(device)
@@ -93,12 +97,14 @@ def action_chain_statistics(actor: TensorDictSequential, data: TensorDictBase,
             sums["guide_step"] += guide_step.pow(2).sum().item()
             sums["data_step"] += data_step.pow(2).sum().item()
             sums["cosine"] += torch.nn.functional.cosine_similarity(guide_step, data_step, dim=-1).sum().item()
+            sums["guide_error"] += (acted.get(GUIDE_KEY) - next_latent).pow(2).sum().item()
     count = data.numel()
     return {
         "inverse_action_mse": sums["inverse"] / count,
         "actor_action_mse": sums["actor"] / count,
         "guide_step_ratio": (sums["guide_step"] / sums["data_step"]) ** 0.5,
         "guide_step_cosine": sums["cosine"] / count,
+        "guide_error_ratio": (sums["guide_error"] / sums["data_step"]) ** 0.5,
     }
 
 
