@@ -428,18 +428,25 @@ _AGGREGATE_HEADER = ("| method | seeds × tasks | IQM [95 % CI] | mean [95 % CI]
 
 
 def _interval_estimates(matrices: dict) -> dict:
-    """{label: [(IQM, low, high), (mean, low, high)]} of each ``[seeds, tasks]`` score matrix."""
+    """{label: [(IQM, low, high), (mean, low, high)]} of each ``[seeds, tasks]`` score matrix.
+
+    One seed per task leaves the bootstrap nothing to resample, so such a matrix gets no interval
+    (low and high NaN) rather than a point posing as one."""
     from benchmarks import aggregate
 
-    return {label: [aggregate.stratified_bootstrap_ci(scores, statistic)
-                    for statistic in (aggregate.iqm, aggregate.mean)] for label, scores in matrices.items()}
+    def estimate(scores, statistic):
+        if scores.shape[0] == 1:
+            return statistic(scores), math.nan, math.nan
+        return aggregate.stratified_bootstrap_ci(scores, statistic)
+
+    return {label: [estimate(scores, statistic) for statistic in (aggregate.iqm, aggregate.mean)]
+            for label, scores in matrices.items()}
 
 
 def _aggregate_rows(matrices: dict, estimates: dict) -> list[str]:
     rows = []
     for label, scores in matrices.items():
-        # one seed per task leaves the bootstrap nothing to resample: its interval would be a point
-        cells = [f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" if scores.shape[0] > 1 else f"**{p:.1f}** (one seed: no interval)"
+        cells = [f"**{p:.1f}** (one seed: no interval)" if math.isnan(lo) else f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]"
                  for p, lo, hi in estimates[label]]
         rows.append(f"| {label} | {scores.shape[0]} × {scores.shape[1]} | {cells[0]} | {cells[1]} |")
     return rows
@@ -736,7 +743,7 @@ def _aggregate_plot(matrices: dict, estimates: dict, folder: Path, filename: str
     for row, method in enumerate(methods):
         for col, (name, (point, low, high)) in enumerate(zip(("IQM", "mean"), estimates[method])):
             y = row + (0.15 if col else -0.15)
-            ax_ci.plot([low, high], [y, y], color=f"C{col}", linewidth=4, alpha=0.6,
+            ax_ci.plot([low, high], [y, y], color=f"C{col}", linewidth=4, alpha=0.6,  # NaN: no bar
                        label=name if row == 0 else None)
             ax_ci.plot([point], [y], "k|", markersize=10)
     ax_ci.set_yticks(range(len(methods)), methods)

@@ -195,7 +195,9 @@ def test_the_verdict_weighs_a_trend_against_the_scatter_of_the_evaluations(trend
 
 def test_an_aggregate_over_one_seed_gives_no_interval():
     matrices = {"one seed": np.array([[10.0, 20.0, 30.0, 40.0]]), "two seeds": np.array([[10.0, 20.0], [12.0, 26.0]])}
-    one, two = run_grid._aggregate_rows(matrices, run_grid._interval_estimates(matrices))
+    estimates = run_grid._interval_estimates(matrices)
+    assert all(np.isnan(low) and np.isnan(high) for _, low, high in estimates["one seed"])
+    one, two = run_grid._aggregate_rows(matrices, estimates)
     assert one == "| one seed | 1 × 4 | **25.0** (one seed: no interval) | **25.0** (one seed: no interval) |"
     # two seeds: the mean of the four scores, with an interval that is not a point
     low, high = map(float, re.findall(r"\[([\d.]+), ([\d.]+)\]", two)[1])
