@@ -7,7 +7,8 @@ RESULTS.md is the one place the study's numbers are published: every arm on ever
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
 --report`` and ``heldout_selection --table``, each under the command that prints it alone.
-Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says it is generated and is not edited by hand.
+Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
+it is generated and is not edited by hand.
 """
 from __future__ import annotations
 
