@@ -23,7 +23,8 @@ it records the score and, on the trained and on the held-out transitions:
 (all from :func:`~torchrl_tels.diagnostics.action_chain_statistics`).
 
 Writes ``benchmarks/reproduction/results/heldout_selection/<task>-seed<k>.json`` (temp file +
-rename; skipped if it exists unless ``--force``); ``--table`` prints the table RESULTS.md holds.
+rename; skipped if it exists unless ``--force``); ``--table`` prints the table RESULTS.md holds and draws
+``heldout_selection.png`` beside the JSONs.
 """
 from __future__ import annotations
 
@@ -38,7 +39,8 @@ import torch
 import tqdm
 from hydra import compose, initialize_config_dir
 
-from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, save_figure, skip_existing,
+                                write_result)
 from benchmarks.reproduction.action_error import training_rows
 from torchrl_tels.data import load_dataset
 from torchrl_tels.diagnostics import action_chain_statistics
@@ -109,6 +111,31 @@ def table() -> str:
     return "\n".join([head, *rows])
 
 
+def plot() -> Path:
+    """Score and held-out action MSE against policy steps, one panel per result."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+    fig, axes = plt.subplots(1, len(results), figsize=(4.5 * len(results), 3.4), squeeze=False)
+    for ax, result in zip(axes[0], results):
+        steps = [e["step"] / 1000 for e in result["evaluations"]]
+        ax.plot(steps, [e["score"] for e in result["evaluations"]], "o-", color="C0")
+        ax.set_xlabel("policy steps (k)")
+        ax.set_ylabel("D4RL normalized score", color="C0")
+        ax.set_title(f"{result['task']} seed {result['seed']}", fontsize=9)
+        twin = ax.twinx()
+        for split, style in (("heldout", "s-"), ("trained", "^--")):
+            twin.plot(steps, [e[split]["actor_action_mse"] for e in result["evaluations"]], style, color="C3",
+                      label=f"{split} action MSE")
+        twin.set_ylabel("Eq. (11) action MSE", color="C3")
+        twin.legend(fontsize=7)
+    fig.tight_layout()
+    return save_figure(fig, RESULTS / "heldout_selection.png")
+
+
 def main():
     parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="hopper-medium-v2-10k")
@@ -123,6 +150,7 @@ def main():
     args = parser.parse_args()
     if args.table:
         print(table())
+        print(f"wrote {repo_relative(plot())}")
         return
     out = RESULTS / f"{args.task}-seed{args.seed}.json"
     if skip_existing(out, args.force):
