@@ -170,6 +170,8 @@ def heldout_section() -> list[str]:
         "",
         heldout_selection.table(),
         "",
+        "![score and action error over policy steps](results/heldout_selection/heldout_selection.png)",
+        "",
     ]
 
 
