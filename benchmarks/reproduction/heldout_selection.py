@@ -45,6 +45,7 @@ from benchmarks.reproduction.action_error import training_rows
 from torchrl_tels.data import load_dataset
 from torchrl_tels.diagnostics import action_chain_statistics
 from torchrl_tels.envs import make_eval_envs
+from torchrl_tels.record import second_half_mean
 from torchrl_tels.trainer import evaluate, make_data, make_stage1, make_stage2, RunState
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "heldout_selection"
@@ -92,18 +93,22 @@ def selection_row(result: dict) -> str:
     heldout = [e["heldout"]["actor_action_mse"] for e in evaluations]
     chosen = min(range(len(evaluations)), key=heldout.__getitem__)
     best = max(range(len(evaluations)), key=scores.__getitem__)
-    half = scores[len(scores) // 2:]
     first, last = evaluations[0], evaluations[-1]
     return (f"| {result['task']} | {result['seed']} | {result['trained_rows']} / {result['heldout_rows']} "
-            f"| {scores[best]:.1f} at {evaluations[best]['step']} | {scores[-1]:.1f} | {sum(half) / len(half):.1f} "
+            f"| {scores[best]:.1f} at {evaluations[best]['step']} | {scores[-1]:.1f} "
+            f"| {second_half_mean(evaluations):.1f} "
             f"| {scores[chosen]:.1f} at {evaluations[chosen]['step']} | {spearman(heldout, scores):+.2f} "
             f"| {first['trained']['actor_action_mse']:.4f} → {last['trained']['actor_action_mse']:.4f} "
             f"| {first['heldout']['actor_action_mse']:.4f} → {last['heldout']['actor_action_mse']:.4f} "
             f"| {first['heldout']['guide_error_ratio']:.2f} → {last['heldout']['guide_error_ratio']:.2f} |")
 
 
+def results() -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+
+
 def table() -> str:
-    rows = [selection_row(json.loads(p.read_text())) for p in sorted(RESULTS.glob("*.json"))]
+    rows = [selection_row(result) for result in results()]
     head = ("| task | seed | trained / held-out rows | best score (step) | final score | second-half mean "
             "| score at least held-out action MSE (step) | rank corr. held-out MSE vs score "
             "| trained action MSE first → last | held-out action MSE first → last "
@@ -118,9 +123,9 @@ def plot() -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    results = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
-    fig, axes = plt.subplots(1, len(results), figsize=(4.5 * len(results), 3.4), squeeze=False)
-    for ax, result in zip(axes[0], results):
+    readings = results()
+    fig, axes = plt.subplots(1, len(readings), figsize=(4.5 * len(readings), 3.4), squeeze=False)
+    for ax, result in zip(axes[0], readings):
         steps = [e["step"] / 1000 for e in result["evaluations"]]
         ax.plot(steps, [e["score"] for e in result["evaluations"]], "o-", color="C0")
         ax.set_xlabel("policy steps (k)")
