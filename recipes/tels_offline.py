@@ -54,6 +54,7 @@ from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  #
 from torchrl_tels.trainer import (  # noqa: E402
     check_same_stage1_length,
     evaluate,
+    evaluation_scalars,
     fit_tsidm_seeds,
     load_pretrained_tsidm,
     make_data,
@@ -144,8 +145,7 @@ def train(cfg: DictConfig) -> dict:
                     monitor = stage2.monitor if step + 1 == cfg.policy.steps else None
                     run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats,
                                                     monitor=monitor))
-                logger.log_scalars({"eval/score": run.evaluations[-1]["score"],
-                                    "eval/guide_step_rms": run.evaluations[-1]["guide_step_rms"]}, step + 1)
+                logger.log_scalars(evaluation_scalars(run.evaluations[-1]), step + 1)
                 progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()
@@ -256,7 +256,7 @@ def train_seeds(cfg: DictConfig) -> dict:
                         with rng.use(k):
                             seed_run.evaluations.append(evaluate(c, stage.actor, env, task, step + 1,
                                                                  stage.latent_stats, monitor=monitor))
-                        logger.log_scalars({f"seed{c.seed}/eval/score": seed_run.evaluations[-1]["score"]}, step + 1)
+                        logger.log_scalars(evaluation_scalars(seed_run.evaluations[-1], f"seed{c.seed}/"), step + 1)
                 progress.set_postfix(score=f"{sum(r.evaluations[-1]['score'] for r in seed_runs) / len(seeds):.1f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()

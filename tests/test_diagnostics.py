@@ -147,3 +147,39 @@ def test_action_chain_statistics_refuse_an_actor_that_is_not_a_tels_chain():
     for actor in (make_tels_actor(tsidm, guide, from_latent=True), guide):
         with pytest.raises(ValueError, match="needs a TELS actor that starts from observations"):
             action_chain_statistics(actor, data)
+
+
+def _episode(latent: torch.Tensor, proposal: torch.Tensor):
+    from tensordict import TensorDict
+    return TensorDict({LATENT_KEY: latent, GUIDE_KEY: proposal, "action": torch.randn(latent.shape[0], 3)},
+                      batch_size=[latent.shape[0]])
+
+
+def test_realized_error_ratio_measures_how_far_the_reached_state_falls_from_the_proposal():
+    import numpy as np
+
+    torch.manual_seed(0)
+    latent = torch.randn(40, 5).cumsum(0)
+    reached = torch.cat([latent[1:], latent[-1:] + 7.0])  # the last proposal has no reached state; it must not count
+
+    # A proposal the environment realizes exactly, and one twice as far along the same step.
+    exact = rollout_statistics(_episode(latent, reached))
+    assert exact["realized_error_ratio"] == pytest.approx(0.0, abs=1e-6)
+    assert exact["realized_step_cosine"] == pytest.approx(1.0, abs=1e-6)
+    overshoot = rollout_statistics(_episode(latent, latent + 2 * (reached - latent)))
+    assert overshoot["realized_error_ratio"] == pytest.approx(0.5, rel=1e-5)
+    assert overshoot["realized_step_cosine"] == pytest.approx(1.0, abs=1e-6)
+
+    # Arbitrary proposals, against a NumPy computation over steps 0 .. T-2.
+    proposal = latent + torch.randn(40, 5)
+    z, g = latent.double().numpy(), proposal.double().numpy()
+    taken, proposed = z[1:] - z[:-1], g[:-1] - z[:-1]
+    expected = np.sqrt(((z[1:] - g[:-1]) ** 2).sum(-1).mean() / (proposed**2).sum(-1).mean())
+    cosine = ((taken * proposed).sum(-1) / np.linalg.norm(taken, axis=-1) / np.linalg.norm(proposed, axis=-1)).mean()
+    stats = rollout_statistics(_episode(latent, proposal))
+    assert stats["realized_error_ratio"] == pytest.approx(expected, rel=1e-5)
+    assert stats["realized_step_cosine"] == pytest.approx(cosine, rel=1e-5)
+
+    # Undefined without a proposed step or without a second state.
+    assert np.isnan(rollout_statistics(_episode(latent, latent))["realized_error_ratio"])
+    assert np.isnan(rollout_statistics(_episode(latent[:1], proposal[:1]))["realized_step_cosine"])

@@ -131,6 +131,9 @@ def test_tels_beats_the_best_trajectory_in_its_data(tmp_path):
     chain = {k: results["diagnostics"][k] for k in ("inverse_action_mse", "actor_action_mse", "guide_step_ratio",
                                                     "guide_step_cosine")}
     assert all(math.isfinite(v) for v in chain.values()) and -1 <= chain["guide_step_cosine"] <= 1, chain
+    # the learned chain lands nearer its guide's proposals than staying put would
+    realized = [e["realized_error_ratio"] for e in results["evaluations"][-results["final_over_last_n_evaluations"]:]]
+    assert all(0 <= r < 1 for r in realized), realized
     # and V over training (its batch mean, every logger.log_interval steps), which moves as V learns
     values = [v for _, v in results["diagnostics"]["guide_history"]["value/state_value"]]
     assert len(values) > 1 and all(math.isfinite(v) for v in values) and max(values) > min(values), values

@@ -42,15 +42,35 @@ def latent_statistics(tsidm: TSIDM, observation: torch.Tensor, next_observation:
 
 
 def rollout_statistics(rollout: TensorDictBase, latent_key=LATENT_KEY, guide_key=GUIDE_KEY) -> dict[str, float]:
-    """``guide_step_rms`` (:math:`\\sqrt{\\mathbb E\\|\\pi_g(z) - z\\|^2}`) and ``action_std``
-    (per-dimension std over time, averaged) of one episode of a TELS actor."""
+    r"""What one episode of a TELS actor did with its guide's proposals.
+
+    * ``guide_step_rms``: :math:`\sqrt{\mathbb E_t\|\pi_g(z_t) - z_t\|^2}`, the proposed latent step.
+    * ``action_std``: per-dimension std of the actions over time, averaged.
+    * ``realized_error_ratio``: :math:`\sqrt{\mathbb E_t\|z_{t+1} - \pi_g(z_t)\|^2 / \mathbb E_t\|\pi_g(z_t) - z_t\|^2}`,
+      how far the state the environment reached is from the one the guide proposed, against the size of
+      the proposed step: 0 when Eq. (11)'s action lands exactly on the proposal, 1 when it does no better
+      than staying put. The value term of Eq. (9) can only raise the return through proposals the chain
+      realizes.
+    * ``realized_step_cosine``: mean cosine between the step taken, :math:`z_{t+1} - z_t`, and the one proposed.
+
+    The last two need two steps and a non-zero proposal; they are NaN otherwise.
+    """
     for key in (latent_key, guide_key, "action"):
         if key not in rollout.keys(True):
             raise KeyError(f"rollout_statistics: the rollout has no {key!r}; was it made by a TELS actor?")
-    step = rollout.get(guide_key) - rollout.get(latent_key)
+    latent, proposal = rollout.get(latent_key), rollout.get(guide_key)
+    step = proposal - latent
     action = rollout.get("action").reshape(-1, rollout.get("action").shape[-1])
     action_std = action.std(0).mean().item() if action.shape[0] > 1 else 0.0
-    return {"guide_step_rms": step.pow(2).sum(-1).mean().sqrt().item(), "action_std": action_std}
+    proposed, taken = step[..., :-1, :], latent[..., 1:, :] - latent[..., :-1, :]
+    proposed_size = proposed.pow(2).sum(-1).mean()
+    if proposed.shape[-2] == 0 or proposed_size == 0:
+        realized_error, cosine = float("nan"), float("nan")
+    else:
+        realized_error = ((taken - proposed).pow(2).sum(-1).mean() / proposed_size).sqrt().item()
+        cosine = torch.nn.functional.cosine_similarity(taken, proposed, dim=-1).mean().item()
+    return {"guide_step_rms": step.pow(2).sum(-1).mean().sqrt().item(), "action_std": action_std,
+            "realized_error_ratio": realized_error, "realized_step_cosine": cosine}
 
 
 @torch.no_grad()

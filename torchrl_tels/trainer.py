@@ -637,8 +637,9 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
              monitor: TSymConsistencyMonitor | None = None) -> dict:
     """``eval.episodes`` deterministic episodes (seeded by run seed and step) and their diagnostics.
 
-    Besides the returns and scores, records the guide's proposed latent step and the spread of
-    the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`) or one whose
+    Besides the returns and scores, records the guide's proposed latent step, how far the states
+    reached fall from the proposals (``realized_error_ratio``, mean over the episodes where it is
+    defined), the spread of the actions, and flags a frozen policy (:func:`~torchrl_tels.diagnostics.is_frozen`) or one whose
     proposals leave the data's step scale (:func:`~torchrl_tels.diagnostics.is_off_data`). With a
     calibrated ``monitor``, ``"monitor"`` holds its score at every step of every episode and the
     fraction of flagged steps.
@@ -655,14 +656,22 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     scores = [score(task, r) for r in returns]
     guide_step = sum(b["guide_step_rms"] for b in behaviour) / len(behaviour)
     action_std = sum(b["action_std"] for b in behaviour) / len(behaviour)
+    realized = [b["realized_error_ratio"] for b in behaviour if math.isfinite(b["realized_error_ratio"])]
     result = {"step": step, "returns": returns, "lengths": lengths, "scores": scores,
               "score": sum(scores) / len(scores), "guide_step_rms": guide_step, "action_std": action_std,
+              "realized_error_ratio": sum(realized) / len(realized) if realized else None,
               "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
                                   latent_stats["data_action_std"]),
               "off_data": is_off_data(guide_step, latent_stats["latent_step_rms"])}
     if monitor is not None:
         result["monitor"] = _monitor_record(monitor, monitored)
     return result
+
+
+def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:
+    """The scalars of one :func:`evaluate` record that a logger plots: the score and the behaviour diagnostics."""
+    keys = ("score", "guide_step_rms", "realized_error_ratio", "action_std")
+    return {f"{prefix}eval/{k}": float(evaluation[k]) for k in keys if evaluation.get(k) is not None}
 
 
 def _monitor_record(monitor: TSymConsistencyMonitor, rollouts: list) -> dict:

@@ -13,20 +13,23 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
 import yaml
-from tensordict.nn import TensorDictModule
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
+from torchrl.envs import EnvBase
 
 from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
 from benchmarks.reproduction.action_error import training_rows
 from torchrl_tels.checkpoint import load_checkpoint
 from torchrl_tels.data import load_dataset
 from torchrl_tels.diagnostics import latent_statistics
-from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normalized_score
+from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normalized_score, Task
 from torchrl_tels.modules import load_tels_actor, make_tels_actor, TSIDM
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY, POLICY_FORMAT
 
@@ -48,7 +51,22 @@ class CappedStep(nn.Module):
         return torch.where(norm > self.max_step, latent + step * (self.max_step / norm.clamp_min(1e-12)), proposal)
 
 
-def capped_scores(run_dir: Path, caps: list[float]) -> dict:
+@dataclass
+class FinishedRun:
+    """A finished recipe run rebuilt for acting: its TS-IDM, its Eq. (11) actor and evaluation envs."""
+
+    results: dict
+    task: Task
+    data: TensorDictBase  # the transitions the run trained on
+    tsidm: TSIDM
+    actor: TensorDictModuleBase
+    env: EnvBase
+    data_step_rms: float
+    seed: int  # of one fixed set of episodes, not any training evaluation's
+
+
+def load_finished_run(run_dir: Path, episodes: int = EPISODES) -> FinishedRun:
+    """Loads ``run_dir`` (``config.yaml``, ``tsidm.pt``, ``policy.pt``, ``results.json``) with ``episodes`` envs."""
     results = json.loads((run_dir / "results.json").read_text())
     config = yaml.safe_load((run_dir / "config.yaml").read_text())
     data = load_dataset(config["dataset"]["name"])
@@ -56,25 +74,28 @@ def capped_scores(run_dir: Path, caps: list[float]) -> dict:
     tsidm = TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
                        action_dim=data["action"].shape[-1]).eval()
     data_step = latent_statistics(tsidm, data["observation"], data["next", "observation"])["latent_step_rms"]
-    env = make_eval_envs(task.env_id, EPISODES)
-    spec = env.action_spec_unbatched
-    trained = load_tels_actor(run_dir / "policy.pt", tsidm, spec)
+    env = make_eval_envs(task.env_id, episodes)
+    actor = load_tels_actor(run_dir / "policy.pt", tsidm, env.action_spec_unbatched)
+    return FinishedRun(results, task, data, tsidm, actor, env, data_step, results["seed"] * 100_000 + 1)
+
+
+def capped_scores(run_dir: Path, caps: list[float]) -> dict:
+    run = load_finished_run(run_dir)
     payload = load_checkpoint(run_dir / "policy.pt", POLICY_FORMAT)
     if payload["mode"] != "deterministic":
         raise SystemExit(f"error: {run_dir} has a {payload['mode']} guide; the cap applies to a deterministic one")
-    guide, options = trained[1].module, payload.get("actor_options", {})
-    seed = results["seed"] * 100_000 + 1  # one fixed set of episodes, not any training evaluation's
+    guide, options = run.actor[1].module, payload.get("actor_options", {})
     scores = {}
     for cap in [None, *caps]:
-        module = guide if cap is None else CappedStep(guide, cap * data_step)
-        actor = make_tels_actor(tsidm, TensorDictModule(module, in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY]), spec,
-                                **options)
+        module = guide if cap is None else CappedStep(guide, cap * run.data_step_rms)
+        actor = make_tels_actor(run.tsidm, TensorDictModule(module, in_keys=[LATENT_KEY], out_keys=[GUIDE_KEY]),
+                                run.env.action_spec_unbatched, **options)
         with torch.no_grad():
-            returns = evaluate_policy(actor, env, EPISODES, seed=seed)
+            returns = evaluate_policy(actor, run.env, EPISODES, seed=run.seed)
         scores["as trained" if cap is None else f"cap {cap:g}"] = float(
-            normalized_score(task, torch.tensor(returns)).mean())
-    return {"dataset": results["dataset"], "final_score": results["final_normalized_score_mean"],
-            "data_step_rms": data_step, "episodes": EPISODES, "scores": scores}
+            normalized_score(run.task, torch.tensor(returns)).mean())
+    return {"dataset": run.results["dataset"], "final_score": run.results["final_normalized_score_mean"],
+            "data_step_rms": run.data_step_rms, "episodes": EPISODES, "scores": scores}
 
 
 def main(argv=None) -> None:

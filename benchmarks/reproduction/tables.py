@@ -6,7 +6,7 @@
 RESULTS.md is the one place the study's numbers are published: every arm on every task (seeds,
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
---report`` and ``heldout_selection --table``, each under the command that prints it alone.
+--report``, ``heldout_selection --table`` and ``realization --table``, each under the command that prints it alone.
 Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
 it is generated and is not edited by hand.
 """
@@ -19,7 +19,8 @@ import statistics
 import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
-from benchmarks.reproduction import beta_rule, budget, eval_reading, heldout_selection, latent_scale, summary
+from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale, realization,
+                                     summary)
 
 RESULTS = summary.HERE / "results"
 OUT = summary.HERE / "RESULTS.md"
@@ -152,6 +153,7 @@ def render() -> str:
         beta_rule.report(),
         "",
         *heldout_section(),
+        *realization_section(),
     ])
 
 
@@ -171,6 +173,24 @@ def heldout_section() -> list[str]:
         heldout_selection.table(),
         "",
         "![score and action error over policy steps](results/heldout_selection/heldout_selection.png)",
+        "",
+    ]
+
+
+def realization_section() -> list[str]:
+    if not any(realization.RESULTS.glob("*.json")):
+        return []
+    return [
+        "## Do the states reached land where the guide proposed?",
+        "",
+        f"`{realization.COMMAND} --table`: finished runs re-rolled for ten fresh episodes (no training).",
+        "Data: the guide's error in predicting its training transitions' next latent, over their latent step",
+        "(0 exact, 1 no better than \"stay put\"). Rollouts: the proposed step over the data's, and the error of",
+        "the state reached against the proposal, over the proposed step (0: Eq. (11) lands on the proposal; 1: no",
+        "better than staying put), over whole episodes and over their opening steps, which come before a fall.",
+        "Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps (`benchmarks/results/long20k`).",
+        "",
+        realization.table(),
         "",
     ]
 

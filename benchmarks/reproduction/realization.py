@@ -1,0 +1,111 @@
+"""Do the states a TELS actor reaches land where its guide proposed? Rollouts of finished runs, no training.
+
+    python -m benchmarks.reproduction.realization --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m benchmarks.reproduction.realization --table
+
+The hypothesis under test: the value term of Eq. (9) raises V of the guide's proposals (α = 1 in the
+`mujoco` preset moves it by 4-24 %), yet the return does not rise, because the chain π_g → Eq. (11) →
+environment does not reach the proposed states. If so, the state reached at t + 1 lies far from
+π_g(z_t) in rollouts, ``realized_error_ratio`` (:func:`torchrl_tels.diagnostics.rollout_statistics`) is
+near 1 or above, and it is largest where TELS trails BC most. If it is small on every set, the actor
+does go where its guide points, and TELS's shortfall lies in what the guide proposes, not in acting on it.
+
+Each reading is ten deterministic episodes of the run as trained (seeded alike for every run), beside the
+same guide's error on its own training transitions (``guide_error_ratio`` of
+:func:`~torchrl_tels.diagnostics.action_chain_statistics`): how well it predicts the data's next latent,
+the same quantity on states the behaviour policy visited. Writes
+``benchmarks/reproduction/results/realization/<name>.json`` (skipped if it exists unless ``--force``).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+
+from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.reproduction.latent_scale import run_results
+from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run
+from torchrl_tels.diagnostics import action_chain_statistics, rollout_statistics
+from torchrl_tels.envs import normalized_score, rollout_episodes
+
+RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "realization"
+COMMAND = "python -m benchmarks.reproduction.realization"
+ROLLOUT_KEYS = ("guide_step_rms", "realized_error_ratio", "realized_step_cosine")
+#: The opening of every episode, read alone: a body that falls visits states no data holds, so the error
+#: over a whole episode partly measures the fall itself. Over the opening, which all but the shortest
+#: episodes survive upright, it comes before the fall.
+OPENING_STEPS = 100
+
+
+def realization(run_dir: Path) -> dict:
+    """The run's score over ten fresh episodes, the rollout statistics (means over episodes) and the
+    guide's error on its training transitions."""
+    run = load_finished_run(run_dir, EPISODES)
+    returns, lengths, episodes, openings = [], [], [], []
+    with torch.no_grad():
+        for rollout in rollout_episodes(run.actor, run.env, EPISODES, seed=run.seed):
+            returns.append(rollout["next", "reward"].sum().item())
+            lengths.append(rollout.shape[-1])
+            episodes.append(rollout_statistics(rollout))
+            openings.append(rollout_statistics(rollout[..., :OPENING_STEPS]))
+    rollouts = {key: statistics.mean(e[key] for e in episodes) for key in ROLLOUT_KEYS}
+    rollouts["opening_realized_error_ratio"] = statistics.mean(e["realized_error_ratio"] for e in openings)
+    on_data = action_chain_statistics(run.actor, run.data)
+    return {"final_score": run.results["final_normalized_score_mean"],
+            "score": float(normalized_score(run.task, torch.tensor(returns)).mean()), "episodes": EPISODES,
+            "returns": returns, "lengths": lengths,
+            "data_step_rms": run.data_step_rms, "rollouts": rollouts,
+            "per_episode": episodes, "per_episode_opening": openings,
+            "on_data": {k: on_data[k] for k in ("guide_step_ratio", "guide_error_ratio", "guide_step_cosine")}}
+
+
+def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
+    """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
+    records = run_results(RESULTS) if records is None else records
+    lines = ["| arm | task | seed | score (these episodes) | mean episode length | data: guide error ratio "
+             "| rollouts: proposed / data step | rollouts: realized error ratio "
+             f"| the same over the first {OPENING_STEPS} steps | rollouts: realized step cosine |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for (arm, task, seed), record in sorted(records.items()):
+        rollouts = record["rollouts"]
+        lines.append(f"| {arm} | {task} | {seed} | {record['score']:.1f} | {statistics.mean(record['lengths']):.0f} "
+                     f"| {record['on_data']['guide_error_ratio']:.2f} "
+                     f"| {rollouts['guide_step_rms'] / record['data_step_rms']:.2f} "
+                     f"| {rollouts['realized_error_ratio']:.2f} | {rollouts['opening_realized_error_ratio']:.2f} "
+                     f"| {rollouts['realized_step_cosine']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog=COMMAND.removeprefix("python -m "), description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
+    parser.add_argument("--name", help="results land in results/realization/<name>.json")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
+    parser.add_argument("--table", action="store_true", help="print the table of every reading")
+    args = parser.parse_args(argv)
+    if args.table:
+        print(table())
+        return
+    if args.run_dir is None or args.name is None:
+        parser.error("--run-dir and --name are required (or --table)")
+    for required in ("config.yaml", "results.json", "tsidm.pt", "policy.pt"):
+        if not (args.run_dir / required).exists():
+            parser.error(f"{args.run_dir / required} is missing: pass a finished run folder")
+    torch.set_num_threads(args.threads)
+    out = RESULTS / f"{args.name}.json"
+    if skip_existing(out, args.force):
+        return
+    record = realization(args.run_dir)
+    record.update(run_dir=str(args.run_dir), command=invocation(),
+                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  machine={**machine_description(), "threads": args.threads})
+    print(f"score {record['score']:.1f}; realized error ratio {record['rollouts']['realized_error_ratio']:.2f}")
+    write_result(out, record, args.force)
+
+
+if __name__ == "__main__":
+    main()
