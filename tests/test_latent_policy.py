@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SoftUpdate
 
@@ -360,3 +361,45 @@ def test_tsym_weight_and_reference_scale_the_guide_regularizer(mode):
         torch.testing.assert_close(a["guide_step_rms"], step)
     with pytest.raises(ValueError, match="tsym_reference"):
         TSymGuideLoss(guide, value, tsidm, mode=mode, tsym_reference=0.0)
+
+
+def test_reach_term_is_the_forward_models_miss_over_the_data_step():
+    """loss_reach = w * E||z + h_fwd(z, h_inv(z, g)) - g||^2 / E||z' - z||^2, and it trains the guide only."""
+    tsidm = small_tsidm()
+    td = latent_batch(tsidm)
+    torch.manual_seed(3)
+    plain, guide, value = make_guide_loss("deterministic", tsidm)
+    reach = TSymGuideLoss(guide, value, tsidm, reach_weight=3.0)
+    out, without = reach(td), plain(td)
+    assert "loss_reach" not in without.keys() and "loss_reach" in reach.out_keys
+    proposal = guide(td.clone())["guide_latent"]
+    with torch.no_grad():
+        z, z_next = td["latent"], td["next", "latent"]
+        reached = z + tsidm.latent_forward(z, tsidm.infer_latent_action(z, proposal))
+        expected = 3.0 * (reached - proposal).pow(2).sum(-1).mean() / (z_next - z).pow(2).sum(-1).mean()
+    torch.testing.assert_close(out["loss_reach"], expected)
+    for key in ("loss_guide_value", "loss_guide_state", "loss_tsym"):  # the other terms are Eq. (9)'s
+        torch.testing.assert_close(out[key], without[key])
+
+    # a gradient on the guide's weights, none on the frozen TS-IDM
+    out["loss_reach"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in reach.guide_network_params.values(True, True))
+    assert all(p.grad is None for p in tsidm.parameters())
+
+    # a proposal the forward model reaches exactly costs nothing: a forward model that returns 0 reaches "stay put"
+    still = TensorDictModule(torch.nn.Identity(), in_keys=["latent"], out_keys=["guide_latent"])
+    with torch.no_grad():
+        for p in tsidm.forward_dynamics.parameters():
+            p.zero_()
+    at_rest = TSymGuideLoss(still, value, tsidm, reach_weight=3.0, check_inputs=False)
+    assert at_rest(td)["loss_reach"].item() == 0.0
+
+
+def test_reach_weight_is_refused_where_it_cannot_apply():
+    tsidm = small_tsidm()
+    _, guide, value = make_guide_loss("deterministic", tsidm)
+    with pytest.raises(ValueError, match="reach_weight"):
+        TSymGuideLoss(guide, value, tsidm, reach_weight=-1.0)
+    _, stochastic_guide, _ = make_guide_loss("stochastic", tsidm)
+    with pytest.raises(ValueError, match="deterministic guide"):
+        TSymGuideLoss(stochastic_guide, value, tsidm, mode="stochastic", reach_weight=1.0)

@@ -285,6 +285,7 @@ HYPERPARAMETER_CASES = [
     ("+tsidm.term_weights.rec=1", "tsidm.term_weights must be null or a mapping with keys among dyn, ode, tsym"),
     ("+tsidm.term_weights.dyn=-1", "tsidm.term_weights.dyn must be >= 0, got -1."),
     ("tsidm.beta_selection=lowest", "tsidm.beta_selection must be one of ('unweighted', 'weighted'), got 'lowest'."),
+    ("guide.reach_weight=-0.5", "guide.reach_weight must be >= 0, got -0.5."),
 ]
 
 
@@ -294,6 +295,12 @@ def test_out_of_range_hyperparameter(recipe, capsys, tmp_path, override, expecte
     message = expect_error(recipe, capsys, tmp_path / "run", override, *extra)
     assert message.startswith(expected)
     assert not (tmp_path / "run").exists()  # checked before anything is created
+
+
+def test_reach_weight_refused_for_the_stochastic_guide(recipe, capsys, tmp_path):
+    message = expect_error(recipe, capsys, tmp_path / "run", "guide.reach_weight=1", "guide.mode=stochastic")
+    assert message.startswith("guide.reach_weight applies to the deterministic guide (Eq. 9) only")
+    assert not (tmp_path / "run").exists()
 
 
 def test_bf16_refused_on_a_cpu_without_native_bf16(recipe, capsys, tmp_path, monkeypatch):

@@ -37,6 +37,7 @@ ADDED_OPTIONS = {
     ("tsidm", "beta_selection"): ("weighted", lambda cfg: cfg.get("tsidm", {}).get("beta") == "auto"),
     ("tsidm", "term_weights"): (None, lambda cfg: True),
     ("eval", "batched"): (False, lambda cfg: True),
+    ("guide", "reach_weight"): (0.0, lambda cfg: True),
 }
 
 
@@ -133,7 +134,7 @@ def validate_config(cfg) -> None:
     for path in ("tsidm.lr", "value.lr", "guide.lr", "guide.max_weight"):
         if _number(cfg, path) <= 0:
             raise ConfigError(f"{path} must be > 0, got {_number(cfg, path)}.")
-    for path in ("guide.alpha", "guide.eta", "guide.tsym_weight", "tsidm.weight_decay"):
+    for path in ("guide.alpha", "guide.eta", "guide.tsym_weight", "guide.reach_weight", "tsidm.weight_decay"):
         if _number(cfg, path) < 0:
             raise ConfigError(f"{path} must be >= 0, got {_number(cfg, path)}.")
     for path in ("dataset.reward_scale", "dataset.reward_bias"):
@@ -187,6 +188,9 @@ def validate_config(cfg) -> None:
         value = OmegaConf.select(cfg, path)
         if value not in allowed:
             raise ConfigError(f"{path} must be one of {allowed}, got {value!r}.")
+    if cfg.guide.mode == "stochastic" and _number(cfg, "guide.reach_weight") > 0:
+        raise ConfigError("guide.reach_weight applies to the deterministic guide (Eq. 9) only; "
+                          "guide.mode=stochastic needs guide.reach_weight=0.")
 
 
 def native_bf16_supported() -> bool:

@@ -608,6 +608,7 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     guide_loss = TSymGuideLoss(
         guide, value_net, tsidm, mode=g.mode, alpha=g.alpha, eta=g.eta, tsym_regularizer=g.tsym_regularizer,
         tsym_weight=g.tsym_weight, tsym_reference=latent_stats["latent_step_rms"] ** 2 if g.tsym_relative else None,
+        reach_weight=g.reach_weight,
         max_weight=g.max_weight, dim_reduction=cfg.tsidm.dim_reduction, check_inputs=False,
     )
     guide_loss.make_value_estimator(gamma=cfg.value.gamma)

@@ -23,13 +23,18 @@ import statistics
 from datetime import datetime, timezone
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run
 from torchrl_tels.diagnostics import action_chain_statistics, rollout_statistics
 from torchrl_tels.envs import normalized_score, rollout_episodes
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "realization"
 COMMAND = "python -m benchmarks.reproduction.realization"
@@ -38,6 +43,69 @@ ROLLOUT_KEYS = ("guide_step_rms", "realized_error_ratio", "realized_step_cosine"
 #: over a whole episode partly measures the fall itself. Over the opening, which all but the shortest
 #: episodes survive upright, it comes before the fall.
 OPENING_STEPS = 100
+#: How many of the run's training states the one-step readings restart the simulator from (a fixed draw).
+ONE_STEP_STATES = 1000
+
+
+def set_state_from_observation(env, observation: np.ndarray) -> None:
+    """Puts a Gymnasium MuJoCo locomotion env in the state its ``observation`` describes (qpos without the
+    x position, then qvel, as Hopper, Walker2d and HalfCheetah observe it), at x = 0: their dynamics do not
+    depend on x."""
+    model = env.unwrapped.model
+    if observation.shape[-1] != model.nq - 1 + model.nv:
+        raise ValueError(f"an observation of size {observation.shape[-1]} is not qpos[1:] + qvel of "
+                         f"{env.spec.id if env.spec else env} ({model.nq - 1} + {model.nv}): cannot set its state")
+    env.unwrapped.set_state(np.concatenate([[0.0], observation[:model.nq - 1]]), observation[model.nq - 1:])
+
+
+def one_step(env, observations: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """The observation one env step after each of ``observations`` under its action, the simulator
+    restarted from each."""
+    reached = []
+    for observation, action in zip(observations.numpy(), actions.numpy()):
+        set_state_from_observation(env, observation)
+        reached.append(env.step(action)[0])
+    return torch.as_tensor(np.array(reached), dtype=observations.dtype)
+
+
+def _miss(reached: torch.Tensor, target: torch.Tensor, latent: torch.Tensor) -> dict[str, float]:
+    """‖reached − target‖ over the step ‖target − z‖ asked for: RMS over states, and the median per state."""
+    miss, asked = (reached - target).pow(2).sum(-1), (target - latent).pow(2).sum(-1)
+    return {"rms": (miss.mean() / asked.mean()).sqrt().item(), "median": (miss / asked).sqrt().median().item()}
+
+
+@torch.no_grad()
+def one_step_readings(run, states: int = ONE_STEP_STATES) -> dict[str, dict[str, float]]:
+    """From states of the run's own data, one simulator step each, in latent space:
+
+    * ``data_action``: the data's action against the data's next state: how exactly this simulator
+      replays the dataset (its version of MuJoCo is not the one that recorded D4RL);
+    * ``inverse_action``: Eq. (11) fed the data's next latent, against that latent: the TS-IDM's part;
+    * ``actor``: the actor as it acts, against its guide's proposal: are the proposals reachable?
+    """
+    rows = torch.randperm(len(run.data), generator=torch.Generator().manual_seed(0))[:states]
+    data = run.data[rows]
+    observation = data["observation"]
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        acted = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))
+    latent, proposal = acted[LATENT_KEY], acted[GUIDE_KEY]
+    next_latent = run.tsidm.encode_state(data["next", "observation"])
+    head = run.actor[-1].module
+    inverse = run.tsidm.decode_action(run.tsidm.infer_latent_action(latent, next_latent))
+    if head.low is not None or head.high is not None:
+        inverse = inverse.clamp(head.low, head.high)
+    env = gym.make(run.task.env_id)
+    env.reset(seed=0)
+    try:
+        def reach(actions):
+            return run.tsidm.encode_state(one_step(env, observation, actions))
+
+        return {"states": len(rows),
+                "data_action": _miss(reach(data["action"]), next_latent, latent),
+                "inverse_action": _miss(reach(inverse), next_latent, latent),
+                "actor": _miss(reach(acted["action"]), proposal, latent)}
+    finally:
+        env.close()
 
 
 def realization(run_dir: Path) -> dict:
@@ -54,29 +122,39 @@ def realization(run_dir: Path) -> dict:
     rollouts = {key: statistics.mean(e[key] for e in episodes) for key in ROLLOUT_KEYS}
     rollouts["opening_realized_error_ratio"] = statistics.mean(e["realized_error_ratio"] for e in openings)
     on_data = action_chain_statistics(run.actor, run.data)
+    one_step_from_data = one_step_readings(run)
     return {"final_score": run.results["final_normalized_score_mean"],
             "score": float(normalized_score(run.task, torch.tensor(returns)).mean()), "episodes": EPISODES,
             "returns": returns, "lengths": lengths,
             "data_step_rms": run.data_step_rms, "rollouts": rollouts,
             "per_episode": episodes, "per_episode_opening": openings,
-            "on_data": {k: on_data[k] for k in ("guide_step_ratio", "guide_error_ratio", "guide_step_cosine")}}
+            "on_data": {k: on_data[k] for k in ("guide_step_ratio", "guide_error_ratio", "guide_step_cosine")},
+            "one_step_from_data": one_step_from_data}
 
 
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
-    """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
+    """Two tables, one row per reading (``{(arm, task, seed): record}``) in arm, task and seed order: the
+    rollouts, then the one-step readings from the data's states."""
     records = run_results(RESULTS) if records is None else records
-    lines = ["| arm | task | seed | score (these episodes) | mean episode length | data: guide error ratio "
-             "| rollouts: proposed / data step | rollouts: realized error ratio "
-             f"| the same over the first {OPENING_STEPS} steps | rollouts: realized step cosine |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    rollout_lines = [
+        "| arm | task | seed | score (these episodes) | mean episode length | data: guide error ratio "
+        "| rollouts: proposed / data step | rollouts: realized error ratio "
+        f"| the same over the first {OPENING_STEPS} steps | rollouts: realized step cosine |",
+        "|---|---|---|---|---|---|---|---|---|---|"]
+    step_lines = [
+        "| arm | task | seed | score (these episodes) | data action → data's next state "
+        "| Eq. (11) on the data's next latent → that latent | actor → its guide's proposal |",
+        "|---|---|---|---|---|---|---|"]
     for (arm, task, seed), record in sorted(records.items()):
-        rollouts = record["rollouts"]
-        lines.append(f"| {arm} | {task} | {seed} | {record['score']:.1f} | {statistics.mean(record['lengths']):.0f} "
-                     f"| {record['on_data']['guide_error_ratio']:.2f} "
-                     f"| {rollouts['guide_step_rms'] / record['data_step_rms']:.2f} "
-                     f"| {rollouts['realized_error_ratio']:.2f} | {rollouts['opening_realized_error_ratio']:.2f} "
-                     f"| {rollouts['realized_step_cosine']:.2f} |")
-    return "\n".join(lines)
+        rollouts, step = record["rollouts"], record["one_step_from_data"]
+        row = f"| {arm} | {task} | {seed} | {record['score']:.1f} "
+        rollout_lines.append(
+            f"{row}| {statistics.mean(record['lengths']):.0f} | {record['on_data']['guide_error_ratio']:.2f} "
+            f"| {rollouts['guide_step_rms'] / record['data_step_rms']:.2f} | {rollouts['realized_error_ratio']:.2f} "
+            f"| {rollouts['opening_realized_error_ratio']:.2f} | {rollouts['realized_step_cosine']:.2f} |")
+        step_lines.append(row + "".join(f"| {step[k]['median']:.2f} ({step[k]['rms']:.2f}) "
+                                        for k in ("data_action", "inverse_action", "actor")) + "|")
+    return "\n".join(rollout_lines + [""] + step_lines)
 
 
 def main(argv=None) -> None:

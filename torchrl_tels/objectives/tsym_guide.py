@@ -41,6 +41,20 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
     ``loss_guide_value`` (:math:`-\lambda_\alpha V`), ``loss_guide_state``
     (the η term) and ``loss_tsym``.
 
+    Optionally (``reach_weight`` :math:`w_r > 0`, not in the paper) a reachability term asks that
+    the TS-IDM's own forward model reach the proposal from :math:`z_s` with the latent action
+    that Eq. (11) will use:
+
+    .. math::
+
+        \ell_{reach} = w_r\,\frac{\mathbb E\|z_s + h_{fwd}(z_s, h_{inv}(z_s, \pi_g(z_s))) - \pi_g(z_s)\|^2}
+            {\mathbb E\|z_{s'} - z_s\|^2}
+
+    (``loss_reach``; the denominator is the batch's data step, detached, so the term is a relative
+    error whatever the latent scale). Eq. (6) checks only that the forward and reverse models agree
+    about the latent action; it does not check that the action leads to the proposed state, and
+    proposals that the environment does not reach can satisfy it as well as the data's transitions.
+
     Stochastic guide, Eq. (10) (AntMaze):
 
     .. math::
@@ -83,6 +97,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
             the latent scale while the state term of Eq. (9) does not; dividing
             by :math:`d_{ref}` makes ``loss_tsym`` a relative error whatever the
             latent scale. ``None`` (default) keeps Eq. (9)/(10) as written.
+        reach_weight: :math:`w_r` of ``loss_reach`` (deterministic guide only); 0 (default) leaves Eq. (9) as written.
         max_weight: clip of the AWR weight.
         dim_reduction: ``"sum"`` (as written) or ``"mean"`` over vector entries of each norm.
     """
@@ -131,6 +146,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         tsym_regularizer: bool = True,
         tsym_weight: float = 1.0,
         tsym_reference: float | None = None,
+        reach_weight: float = 0.0,
         max_weight: float = 100.0,
         dim_reduction: str = "sum",
         gamma: float | None = None,
@@ -143,7 +159,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         if mode not in GUIDE_MODES:
             raise ValueError(f"TSymGuideLoss: mode must be one of {GUIDE_MODES}, got {mode!r}.")
         checks = [("alpha", alpha, 0.0), ("eta", eta, 0.0), ("max_weight", max_weight, 1e-12),
-                  ("tsym_weight", tsym_weight, 0.0)]
+                  ("tsym_weight", tsym_weight, 0.0), ("reach_weight", reach_weight, 0.0)]
         if tsym_reference is not None:
             checks.append(("tsym_reference", tsym_reference, 1e-12))
         for name, value, low in checks:
@@ -158,6 +174,9 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         self.tsym_regularizer = bool(tsym_regularizer)
         self.tsym_weight = float(tsym_weight)
         self.tsym_reference = None if tsym_reference is None else float(tsym_reference)
+        if reach_weight and mode != "deterministic":
+            raise ValueError("TSymGuideLoss: reach_weight applies to the deterministic guide of Eq. (9) only.")
+        self.reach_weight = float(reach_weight)
         self.max_weight = float(max_weight)
         self.dim_reduction = dim_reduction
         self.check_inputs = check_inputs
@@ -192,7 +211,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
     @property
     def out_keys(self):
         if self.mode == "deterministic":
-            keys = ["loss_guide_value", "loss_guide_state"]
+            keys = ["loss_guide_value", "loss_guide_state"] + (["loss_reach"] if self.reach_weight else [])
             extra = ["lambda_alpha", "guide_value", "guide_step_rms"]
             if self.tsym_regularizer:
                 extra.append("tsym_to_state_ratio")
@@ -220,6 +239,16 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
             value = value / self.tsym_reference
         return self.tsym_weight * value
 
+    def reach_loss(self, latent: torch.Tensor, proposed_next_latent: torch.Tensor,
+                   next_latent: torch.Tensor) -> torch.Tensor:
+        r""":math:`\ell_{reach}`: the forward model's miss of the proposal over the data's latent step
+        (``next_latent``: the batch's :math:`z_{s'}`); call inside the frozen TS-IDM's parameters."""
+        tsidm = self.tsidm
+        reached = latent + tsidm.latent_forward(latent, tsidm.infer_latent_action(latent, proposed_next_latent))
+        miss = squared_norm(reached - proposed_next_latent, self.dim_reduction).mean()
+        data_step = squared_norm(next_latent - latent, self.dim_reduction).mean().detach().clamp_min(1e-12)
+        return self.reach_weight * miss / data_step
+
     def _check(self, tensordict: TensorDictBase) -> torch.Tensor:
         owner = type(self).__name__
         latent_dim = self.tsidm.latent_state_dim
@@ -242,7 +271,8 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
 
     def deterministic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         r"""Eq. (9) as losses: ``loss_guide_value`` (:math:`-\lambda_\alpha V(\pi_g(z_s))`),
-        ``loss_guide_state`` (the η term) and ``loss_tsym``, with detached diagnostics."""
+        ``loss_guide_state`` (the η term), ``loss_tsym`` and, with ``reach_weight``, ``loss_reach``,
+        with detached diagnostics."""
         keys = self.tensor_keys
         latent = tensordict.get(keys.latent)
         td = tensordict.select(*self.guide_network.in_keys, strict=False)
@@ -260,6 +290,9 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
                 "loss_guide_state": self.eta
                 * squared_norm(self.tsidm.decode_state(proposal) - next_state, self.dim_reduction).mean(),
             }
+            if self.reach_weight:
+                next_latent = self.tsidm.embed_state(next_state).detach()
+                out["loss_reach"] = self.reach_loss(latent, proposal, next_latent)
             if self.tsym_regularizer:
                 out["loss_tsym"] = self.tsym_loss(latent, proposal)
         out["lambda_alpha"] = lambda_alpha
