@@ -30,6 +30,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.reproduction.heldout_selection import spearman
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run
 from torchrl_tels.diagnostics import action_chain_statistics, rollout_statistics
@@ -50,7 +51,8 @@ ONE_STEP_STATES = 1000
 def set_state_from_observation(env, observation: np.ndarray) -> None:
     """Puts a Gymnasium MuJoCo locomotion env in the state its ``observation`` describes (qpos without the
     x position, then qvel, as Hopper, Walker2d and HalfCheetah observe it), at x = 0: their dynamics do not
-    depend on x."""
+    depend on x. Hopper and Walker2d observe velocities clipped at ±10, so such a state restarts at the clip:
+    part of why replaying the data's own actions does not land exactly on its next states."""
     model = env.unwrapped.model
     if observation.shape[-1] != model.nq - 1 + model.nv:
         raise ValueError(f"an observation of size {observation.shape[-1]} is not qpos[1:] + qvel of "
@@ -82,30 +84,42 @@ def one_step_readings(run, states: int = ONE_STEP_STATES) -> dict[str, dict[str,
       replays the dataset (its version of MuJoCo is not the one that recorded D4RL);
     * ``inverse_action``: Eq. (11) fed the data's next latent, against that latent: the TS-IDM's part;
     * ``actor``: the actor as it acts, against its guide's proposal: are the proposals reachable?
+    * ``model_data`` and ``model_actor``: the same two targets reached by the TS-IDM's own forward model,
+      :math:`z + h_{fwd}(z, h_{inv}(z, \cdot))`, instead of the simulator;
+    * ``rank_correlation``: over the states, how well the forward model's miss of each proposal, and
+      Eq. (6) at the proposal's latent action (the guide's regularizer), rank the simulator's miss.
     """
     rows = torch.randperm(len(run.data), generator=torch.Generator().manual_seed(0))[:states]
     data = run.data[rows]
     observation = data["observation"]
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         acted = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))
+    tsidm, head = run.tsidm, run.actor[-1].module
     latent, proposal = acted[LATENT_KEY], acted[GUIDE_KEY]
-    next_latent = run.tsidm.encode_state(data["next", "observation"])
-    head = run.actor[-1].module
-    inverse = run.tsidm.decode_action(run.tsidm.infer_latent_action(latent, next_latent))
+    next_latent = tsidm.encode_state(data["next", "observation"])
+    inverse = tsidm.decode_action(tsidm.infer_latent_action(latent, next_latent))
     if head.low is not None or head.high is not None:
         inverse = inverse.clamp(head.low, head.high)
     env = gym.make(run.task.env_id)
     env.reset(seed=0)
     try:
-        def reach(actions):
-            return run.tsidm.encode_state(one_step(env, observation, actions))
-
-        return {"states": len(rows),
-                "data_action": _miss(reach(data["action"]), next_latent, latent),
-                "inverse_action": _miss(reach(inverse), next_latent, latent),
-                "actor": _miss(reach(acted["action"]), proposal, latent)}
+        reached_data, reached_inverse, reached = [tsidm.encode_state(one_step(env, observation, actions))
+                                                  for actions in (data["action"], inverse, acted["action"])]
     finally:
         env.close()
+    proposal_action = tsidm.infer_latent_action(latent, proposal)
+    model_reached = latent + tsidm.latent_forward(latent, proposal_action)
+    model_reached_data = latent + tsidm.latent_forward(latent, tsidm.infer_latent_action(latent, next_latent))
+    env_miss = (reached - proposal).pow(2).sum(-1).tolist()
+    return {"states": len(rows),
+            "data_action": _miss(reached_data, next_latent, latent),
+            "inverse_action": _miss(reached_inverse, next_latent, latent),
+            "actor": _miss(reached, proposal, latent),
+            "model_data": _miss(model_reached_data, next_latent, latent),
+            "model_actor": _miss(model_reached, proposal, latent),
+            "rank_correlation": {
+                "model_miss": spearman((model_reached - proposal).pow(2).sum(-1).tolist(), env_miss),
+                "tsym": spearman(tsidm.tsym_consistency(latent, proposal_action).tolist(), env_miss)}}
 
 
 def realization(run_dir: Path) -> dict:
@@ -143,8 +157,10 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
         "|---|---|---|---|---|---|---|---|---|---|"]
     step_lines = [
         "| arm | task | seed | score (these episodes) | data action → data's next state "
-        "| Eq. (11) on the data's next latent → that latent | actor → its guide's proposal |",
-        "|---|---|---|---|---|---|---|"]
+        "| Eq. (11) on the data's next latent → that latent | actor → its guide's proposal "
+        "| forward model: data's next latent | forward model: proposal "
+        "| rank correlation with the simulator's miss: forward model's miss, Eq. (6) |",
+        "|---|---|---|---|---|---|---|---|---|---|"]
     for (arm, task, seed), record in sorted(records.items()):
         rollouts, step = record["rollouts"], record["one_step_from_data"]
         row = f"| {arm} | {task} | {seed} | {record['score']:.1f} "
@@ -152,8 +168,10 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
             f"{row}| {statistics.mean(record['lengths']):.0f} | {record['on_data']['guide_error_ratio']:.2f} "
             f"| {rollouts['guide_step_rms'] / record['data_step_rms']:.2f} | {rollouts['realized_error_ratio']:.2f} "
             f"| {rollouts['opening_realized_error_ratio']:.2f} | {rollouts['realized_step_cosine']:.2f} |")
-        step_lines.append(row + "".join(f"| {step[k]['median']:.2f} ({step[k]['rms']:.2f}) "
-                                        for k in ("data_action", "inverse_action", "actor")) + "|")
+        ranks = step["rank_correlation"]
+        step_lines.append(row + "".join(f"| {step[k]['median']:.2f} ({step[k]['rms']:.2f}) " for k in
+                                        ("data_action", "inverse_action", "actor", "model_data", "model_actor"))
+                          + f"| {ranks['model_miss']:.2f}, {ranks['tsym']:.2f} |")
     return "\n".join(rollout_lines + [""] + step_lines)
 
 
