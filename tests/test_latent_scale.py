@@ -105,3 +105,20 @@ def test_standardized_latent_acts_with_the_saved_statistics(tmp_path):
 def test_fitting_latent_statistics_needs_a_standardized_model():
     with pytest.raises(ValueError, match="latent_standardization=False"):
         make_tsidm().fit_latent_standardization(batch()["observation"])
+
+
+def test_task_table_reports_the_rollouts_realized_error_where_runs_recorded_it(monkeypatch):
+    from benchmarks.reproduction import latent_scale
+
+    def run(score, realized):
+        evaluations = [{"score": score, "realized_error_ratio": r} for r in realized]
+        return {"final_normalized_score_mean": score, "evaluations": evaluations}
+
+    runs = {"preset": {0: {"final_normalized_score_mean": 40.0, "evaluations": [{"score": 40.0}]}},
+            "reach": {0: run(45.0, [0.2, None, 0.4]), 1: run(47.0, [0.6])}}
+    monkeypatch.setattr(latent_scale, "_runs", lambda sources, task: runs[sources[0]])
+    lines = latent_scale.task_table("t", arms=(("preset", ("preset",)), ("reach", ("reach",))))
+    preset_row, reach_row = lines[4], lines[5]
+    assert preset_row.split(" | ")[11] == "—"  # older runs did not record it
+    assert reach_row.split(" | ")[11] == "0.45"  # seeds' means 0.3 and 0.6, then their mean
+    assert reach_row.split(" | ")[6] == "+5.0 (1/1 up)"  # against the preset, on the seeds both have

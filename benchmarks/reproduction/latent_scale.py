@@ -43,6 +43,7 @@ ARMS = (
     ("relative", ("scale_relative",)),
     ("standardized, guide ℓ_Tsym ×50", ("scale_standardized_tsym50",)),
     ("TSRL-style weighting", ("tsrl_weighting",)),
+    ("preset + reachability term (guide.reach_weight=1)", ("reach1",)),
     ("BC", ("grid:bc",)),
 )
 #: The ``ae`` lead untangled: the ``ae`` TS-IDM (ℓ_rec only) under the preset of the time (alpha = 0.01,
@@ -77,6 +78,12 @@ def _rollout_step(result: dict) -> float | None:
     return statistics.mean(steps) / data_step if steps and data_step else None
 
 
+def _realized_error(result: dict) -> float | None:
+    """Mean over a run's evaluations of the rollouts' realized error ratio, where it recorded one."""
+    values = [e["realized_error_ratio"] for e in result["evaluations"] if e.get("realized_error_ratio") is not None]
+    return statistics.mean(values) if values else None
+
+
 def _mean(values) -> str:
     values = [v for v in values if v is not None]
     return f"{statistics.mean(values):.3g}" if values else "—"
@@ -102,8 +109,9 @@ def task_table(task: str, arms=ARMS) -> list[str]:
     bc, preset = found.get("BC", {}), found.get("preset", {})
     lines = [f"**{task}**", "",
              "| arm | seeds | final score per seed | mean | second-half mean | vs BC | vs preset | latent_rms | "
-             "latent_step_rms | guide ℓ_Tsym / state term | rollout step / data step | frozen evaluations |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "latent_step_rms | guide ℓ_Tsym / state term | rollout step / data step | rollout realized error ratio | "
+             "frozen evaluations |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, runs in found.items():
         if not runs:
             continue
@@ -119,7 +127,7 @@ def task_table(task: str, arms=ARMS) -> list[str]:
             f"{'—' if label == 'BC' else _change(runs, bc)} | {'—' if label == 'preset' else _change(runs, preset)} | "
             f"{_mean(d.get('latent_rms') for d in diagnostics)} | {_mean(d.get('latent_step_rms') for d in diagnostics)} | "
             f"{_mean(_final_ratio(runs[s]) for s in seeds)} | {_mean(_rollout_step(runs[s]) for s in seeds)} | "
-            f"{_frozen_cell(runs, seeds, frozen, has_frozen)} |")
+            f"{_mean(_realized_error(runs[s]) for s in seeds)} | {_frozen_cell(runs, seeds, frozen, has_frozen)} |")
     return lines + [""]
 
 
