@@ -176,7 +176,7 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog=COMMAND.removeprefix("python -m "), description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
     parser.add_argument("--name", help="results land in results/realization/<name>.json")
     parser.add_argument("--threads", type=int, default=1)
