@@ -116,9 +116,24 @@ def test_task_table_reports_the_rollouts_realized_error_where_runs_recorded_it(m
 
     runs = {"preset": {0: {"final_normalized_score_mean": 40.0, "evaluations": [{"score": 40.0}]}},
             "reach": {0: run(45.0, [0.2, None, 0.4]), 1: run(47.0, [0.6])}}
-    monkeypatch.setattr(latent_scale, "_runs", lambda sources, task: runs[sources[0]])
+    monkeypatch.setattr(latent_scale, "_runs", lambda sources, task: runs.get(sources[0], {}))
     lines = latent_scale.task_table("t", arms=(("preset", ("preset",)), ("reach", ("reach",))))
     preset_row, reach_row = lines[4], lines[5]
     assert preset_row.split(" | ")[11] == "—"  # older runs did not record it
     assert reach_row.split(" | ")[11] == "0.45"  # seeds' means 0.3 and 0.6, then their mean
     assert reach_row.split(" | ")[6] == "+5.0 (1/1 up)"  # against the preset, on the seeds both have
+
+
+def test_an_arm_is_compared_with_the_preset_run_on_its_own_kind_of_cpu(monkeypatch):
+    from benchmarks.reproduction import latent_scale
+
+    def run(score, cpu):
+        return {"final_normalized_score_mean": score, "evaluations": [{"score": score}], "machine": {"cpu": cpu}}
+
+    runs = {"alpha1": {0: run(40.0, "Intel(R) Xeon(R) Processor, AVX-512")},
+            "alpha1_epyc": {0: run(50.0, "AMD EPYC, AVX-512")},
+            "arm": {0: run(53.0, "AMD EPYC, AVX-512")}}
+    monkeypatch.setattr(latent_scale, "_runs", lambda sources, task: runs.get(sources[0], {}))
+    lines = latent_scale.task_table("t", arms=(("preset", ("alpha1", "alpha1_epyc")), ("arm", ("arm",))))
+    assert lines[4].split(" | ")[2] == "40.0"  # the preset row shows the first source
+    assert lines[5].split(" | ")[6] == "+3.0 (1/1 up)"  # but the AMD arm pairs with the AMD preset

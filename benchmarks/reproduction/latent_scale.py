@@ -33,6 +33,7 @@ import json
 import re
 import statistics
 
+from benchmarks.harness import recorded_cpu
 from benchmarks.reproduction import summary
 
 #: (row label, arm folders under results/ tried in order, or a grid method)
@@ -104,6 +105,17 @@ def _frozen_cell(runs, seeds, frozen, has_frozen) -> str:
     return f"{sum(frozen)} of {sum(len(runs[s]['evaluations']) for s in seeds)}"
 
 
+def _same_cpu_preset(runs: dict[int, dict], task: str, preset: dict[int, dict]) -> dict[int, dict]:
+    """The preset's runs on ``task`` from the kind of CPU ``runs`` recorded (same seeds are exact only
+    on one kind), else ``preset`` (the table's preset row)."""
+    cpus = {recorded_cpu(r) for r in runs.values()}
+    for source in dict(ARMS)["preset"]:
+        candidate = _runs((source,), task)
+        if candidate and {recorded_cpu(r) for r in candidate.values()} == cpus:
+            return candidate
+    return preset
+
+
 def task_table(task: str, arms=ARMS) -> list[str]:
     found = {label: _runs(sources, task) for label, sources in arms}
     bc, preset = found.get("BC", {}), found.get("preset", {})
@@ -124,7 +136,7 @@ def task_table(task: str, arms=ARMS) -> list[str]:
         lines.append(
             f"| {label} | {', '.join(map(str, seeds))} | {', '.join(f'{x:.1f}' for x in scores)} | "
             f"**{statistics.mean(scores):.1f}** | {_mean(halves)} | "
-            f"{'—' if label == 'BC' else _change(runs, bc)} | {'—' if label == 'preset' else _change(runs, preset)} | "
+            f"{'—' if label == 'BC' else _change(runs, bc)} | {'—' if label == 'preset' else _change(runs, _same_cpu_preset(runs, task, preset))} | "
             f"{_mean(d.get('latent_rms') for d in diagnostics)} | {_mean(d.get('latent_step_rms') for d in diagnostics)} | "
             f"{_mean(_final_ratio(runs[s]) for s in seeds)} | {_mean(_rollout_step(runs[s]) for s in seeds)} | "
             f"{_mean(_realized_error(runs[s]) for s in seeds)} | {_frozen_cell(runs, seeds, frozen, has_frozen)} |")
