@@ -291,6 +291,10 @@ def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
 
 def report() -> str:
     lines = shrink_table() + aggregate_table() + untangle_table() + action_error_table() + proposal_cap_table()
+    lines += ["Per task: \"vs preset\" is the mean change over the seeds both have against the preset's runs on the "
+              "same kind of CPU (`alpha1` on the Intel Xeon, `alpha1_epyc` on the AMD EPYC; the preset row shows "
+              "`alpha1`); \"rollout realized error ratio\": the mean over a run's evaluations of "
+              "`realized_error_ratio` (`torchrl_tels.diagnostics.rollout_statistics`), where the run recorded it.", ""]
     for task in summary.TASKS:
         lines += task_table(task)
     task, arms = HELD_OUT
