@@ -199,6 +199,8 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         in_keys = [keys.latent]
         if self.mode == "deterministic":
             in_keys.append(("next", keys.observation))
+            if self.reach_weight:
+                in_keys.append(("next", keys.latent))
         else:
             in_keys += [
                 ("next", keys.latent),
@@ -291,8 +293,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
                 * squared_norm(self.tsidm.decode_state(proposal) - next_state, self.dim_reduction).mean(),
             }
             if self.reach_weight:
-                next_latent = self.tsidm.embed_state(next_state).detach()
-                out["loss_reach"] = self.reach_loss(latent, proposal, next_latent)
+                out["loss_reach"] = self.reach_loss(latent, proposal, tensordict.get(("next", keys.latent)))
             if self.tsym_regularizer:
                 out["loss_tsym"] = self.tsym_loss(latent, proposal)
         out["lambda_alpha"] = lambda_alpha
