@@ -105,20 +105,17 @@ def _frozen_cell(runs, seeds, frozen, has_frozen) -> str:
     return f"{sum(frozen)} of {sum(len(runs[s]['evaluations']) for s in seeds)}"
 
 
-def _same_cpu_preset(runs: dict[int, dict], task: str, preset: dict[int, dict]) -> dict[int, dict]:
-    """The preset's runs on ``task`` from the kind of CPU ``runs`` recorded (same seeds are exact only
-    on one kind), else ``preset`` (the table's preset row)."""
+def _same_cpu_preset(runs: dict[int, dict], presets: list[dict[int, dict]], preset: dict[int, dict]) -> dict[int, dict]:
+    """Of ``presets`` (the preset's runs from each of its sources), the one from the kind of CPU ``runs``
+    recorded (same seeds are exact only on one kind), else ``preset`` (the table's preset row)."""
     cpus = {recorded_cpu(r) for r in runs.values()}
-    for source in dict(ARMS)["preset"]:
-        candidate = _runs((source,), task)
-        if candidate and {recorded_cpu(r) for r in candidate.values()} == cpus:
-            return candidate
-    return preset
+    return next((c for c in presets if c and {recorded_cpu(r) for r in c.values()} == cpus), preset)
 
 
 def task_table(task: str, arms=ARMS) -> list[str]:
     found = {label: _runs(sources, task) for label, sources in arms}
     bc, preset = found.get("BC", {}), found.get("preset", {})
+    presets = [_runs((source,), task) for source in dict(ARMS)["preset"]]
     lines = [f"**{task}**", "",
              "| arm | seeds | final score per seed | mean | second-half mean | vs BC | vs preset | latent_rms | "
              "latent_step_rms | guide ℓ_Tsym / state term | rollout step / data step | rollout realized error ratio | "
@@ -136,7 +133,8 @@ def task_table(task: str, arms=ARMS) -> list[str]:
         lines.append(
             f"| {label} | {', '.join(map(str, seeds))} | {', '.join(f'{x:.1f}' for x in scores)} | "
             f"**{statistics.mean(scores):.1f}** | {_mean(halves)} | "
-            f"{'—' if label == 'BC' else _change(runs, bc)} | {'—' if label == 'preset' else _change(runs, _same_cpu_preset(runs, task, preset))} | "
+            f"{'—' if label == 'BC' else _change(runs, bc)} | "
+            f"{'—' if label == 'preset' else _change(runs, _same_cpu_preset(runs, presets, preset))} | "
             f"{_mean(d.get('latent_rms') for d in diagnostics)} | {_mean(d.get('latent_step_rms') for d in diagnostics)} | "
             f"{_mean(_final_ratio(runs[s]) for s in seeds)} | {_mean(_rollout_step(runs[s]) for s in seeds)} | "
             f"{_mean(_realized_error(runs[s]) for s in seeds)} | {_frozen_cell(runs, seeds, frozen, has_frozen)} |")

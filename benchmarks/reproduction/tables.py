@@ -157,42 +157,34 @@ def render() -> str:
     ])
 
 
-def heldout_section() -> list[str]:
-    if not any(heldout_selection.RESULTS.glob("*.json")):
+def reading_section(script, title: str, description: list[str], after_table: tuple[str, ...] = ()) -> list[str]:
+    """A section for the readings ``script`` (a module with ``RESULTS`` and ``table()``) saved, if any."""
+    if not any(script.RESULTS.glob("*.json")):
         return []
-    return [
-        "## Held-out transitions against the score over a long stage 2",
-        "",
+    return [f"## {title}", "", *description, "", script.table(), "", *after_table]
+
+
+def heldout_section() -> list[str]:
+    return reading_section(heldout_selection, "Held-out transitions against the score over a long stage 2", [
         "`python -m benchmarks.reproduction.heldout_selection --table`: the recipe's default at 3k TS-IDM + 20k",
         "policy steps, trained on a whole-trajectory subset, the file's other trajectories held out; an evaluation",
         "(ten episodes) every 2k steps. \"Score at least held-out action MSE\": the score of the policy that an",
         "offline rule picking the lowest held-out Eq. (11) action error would keep. Rank correlation over the",
         "evaluations: negative when a lower held-out error goes with a higher score. Guide error / step: 1 is no",
         "better than \"stay put\".",
-        "",
-        heldout_selection.table(),
-        "",
-        "![score and action error over policy steps](results/heldout_selection/heldout_selection.png)",
-        "",
-    ]
+    ], ("![score and action error over policy steps](results/heldout_selection/heldout_selection.png)", ""))
 
 
 def realization_section() -> list[str]:
-    if not any(realization.RESULTS.glob("*.json")):
-        return []
-    return [
-        "## Do the states reached land where the guide proposed?",
-        "",
+    return reading_section(realization, "Do the states reached land where the guide proposed?", [
         f"`{realization.COMMAND} --table`: finished runs re-rolled for ten fresh episodes (no training).",
         "Data: the guide's error in predicting its training transitions' next latent, over their latent step",
         "(0 exact, 1 no better than \"stay put\"). Rollouts: the proposed step over the data's, and the error of",
         "the state reached against the proposal, over the proposed step (0: Eq. (11) lands on the proposal; 1: no",
         "better than staying put), over whole episodes and over their opening steps, which come before a fall.",
-        "Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps (`benchmarks/results/long20k`).",
-        "",
-        realization.table(),
-        "",
-    ]
+        "Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps (`benchmarks/results/long20k`); arm `reach1`:",
+        "the preset with `guide.reach_weight=1` at the shared budget (`results/reach1`).",
+    ])
 
 
 def main() -> int:
