@@ -45,6 +45,13 @@ from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 
 def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int, apply_to: torch.Tensor) -> torch.Tensor:
     """BC fitted on the run's training transitions, then applied to ``apply_to``: the error the actor's chain has to beat."""
+    with torch.no_grad():
+        return train_bc(observation, action, steps, seed)(apply_to)
+
+
+def train_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int):
+    """A tanh MLP (256, 256) on standardized observations, fitted to ``action`` by MSE for ``steps`` batches of
+    256: returns the policy, observations → actions."""
     torch.manual_seed(seed)
     loc, scale = observation.mean(0), observation.std(0).clamp_min(1e-3)
     x = (observation - loc) / scale
@@ -57,8 +64,7 @@ def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: in
         optim.zero_grad()
         loss.backward()
         optim.step()
-    with torch.no_grad():
-        return torch.tanh(net((apply_to - loc) / scale))
+    return lambda observations: torch.tanh(net((observations - loc) / scale))
 
 
 def training_rows(data: TensorDict, dataset_cfg: dict, seed: int) -> torch.Tensor:

@@ -1,0 +1,299 @@
+"""Is the value the guide promises delivered? V retrained as the run trained it, read from the data's states.
+
+    python -m benchmarks.reproduction.value_delivery --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m benchmarks.reproduction.value_delivery --table
+
+The hypothesis under test: with α = 1 the value term of Eq. (9) moves the guide's proposals to latents of
+higher V than the data's next latents, but the gain is V's extrapolation off the data, not a better state:
+the states the actor actually reaches (the simulator restarted from the data's states) are no better under V,
+in reward, or in return over the next ``HORIZON`` steps than where the data's action, or behaviour cloning,
+goes. If the reached states do gain and the actor beats BC over the horizon from the data's states, the
+guide's improvement is real locally, and TELS's tie with BC over whole episodes comes from where the closed
+loop drifts, not from an optimistic V.
+
+A finished run keeps no V, so V (Eq. 8) is trained again exactly as stage 2 trained it: the run's config,
+the trainer's own :func:`~torchrl_tels.trainer.make_stage2` (same seed, networks and replay buffer) and the
+same number of steps; V's update never reads the guide, so with the same batches it is the run's V. The
+record keeps how closely the retrained V's logged loss matches the run's (``value_loss_match``).
+
+From ``STATES`` of the run's training states (a fixed draw among those with ``HORIZON`` steps of data after
+them or a recorded end), readings, each the median over states of a difference:
+
+* ``value_rank``: rank correlation of V(φ(s)) with the data's discounted return-to-go (episodes that the
+  data records to their end, or states at least ``RTG_MARGIN`` steps before the data's last step);
+* ``promised``: V(π_g(z)) − V(z'), the proposal against the data's next latent, over V's spread on the data;
+* ``delivered``: V(φ(s₁)) with s₁ the state the actor's action reaches, minus V at the state the data's own
+  action reaches in the same simulator, over the same spread; ``reward``: the same two steps' rewards;
+* ``horizon``: the discounted return over ``HORIZON`` steps from the data state, for the actor, for BC fitted
+  to the same transitions (:func:`~benchmarks.reproduction.action_error.train_bc`, ``BC_STEPS``), and the
+  data's own recorded return; ``actor_over_bc``: the share of states where the actor's return is higher.
+
+Writes ``benchmarks/reproduction/results/value_delivery/<name>.json`` (skipped if it exists unless ``--force``).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+from datetime import datetime, timezone
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+import tqdm
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf, open_dict
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives.value.functional import reward2go
+
+from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.reproduction.action_error import train_bc
+from benchmarks.reproduction.heldout_selection import spearman
+from benchmarks.reproduction.latent_scale import run_results
+from benchmarks.reproduction.proposal_cap import load_finished_run
+from benchmarks.reproduction.realization import set_state_from_observation
+from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
+from torchrl_tels.trainer import make_data, make_stage2
+from torchrl_tels.training import load_training_state
+
+RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "value_delivery"
+COMMAND = "python -m benchmarks.reproduction.value_delivery"
+STATES = 1000
+HORIZON = 100
+#: γ^300 < 0.05: a return-to-go cut this far from the data's last step is within 5 % of the full one.
+RTG_MARGIN = 300
+BC_STEPS = 5000
+#: Gymnasium MuJoCo envs stepped side by side per chunk of start states (memory, not speed).
+CHUNK = 250
+
+
+def episode_ends(data) -> torch.Tensor:
+    """True on each episode's last row (the data's episodes lie in order, one after another)."""
+    episode = data["episode"]
+    return torch.cat([episode[1:] != episode[:-1], torch.ones(1, dtype=torch.bool)])
+
+
+def steps_to_end(ends: torch.Tensor) -> torch.Tensor:
+    """For each row, how many rows its episode still holds after it."""
+    remaining, count = torch.empty(len(ends), dtype=torch.long), 0
+    for row in range(len(ends) - 1, -1, -1):
+        count = 0 if ends[row] else count + 1
+        remaining[row] = count
+    return remaining
+
+
+def recorded_returns(data, gamma: float, horizon: int | None = None) -> torch.Tensor:
+    """The discounted return from each row to its episode's last row (torchrl's ``reward2go``), or over the
+    next ``horizon`` steps at most."""
+    reward, ends = data["next", "reward"], episode_ends(data)
+    if horizon is None:
+        return reward2go(reward, ends.unsqueeze(-1), gamma, time_dim=-2).squeeze(-1)
+    discounts = gamma ** torch.arange(horizon, dtype=reward.dtype)
+    padded = torch.cat([reward.squeeze(-1), reward.new_zeros(horizon)])
+    alive = torch.cat([~ends, torch.zeros(horizon, dtype=torch.bool)])  # a row past an episode's end adds nothing
+    total, weight = torch.zeros(len(reward)), torch.ones(len(reward))
+    for k in range(horizon):
+        total += weight * discounts[k] * padded[k:k + len(reward)]
+        weight = weight * alive[k:k + len(reward)]
+    return total
+
+
+def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: int, gamma: float):
+    """From each observation's state (:func:`set_state_from_observation`), ``horizon`` steps of ``policy``
+    (a batch of observations → actions, or with ``horizon=1`` a tensor of each state's action): the
+    discounted returns, the first step's reward and observation."""
+    if isinstance(policy, torch.Tensor) and horizon != 1:
+        raise ValueError("a tensor of actions is one step per state: horizon must be 1")
+    returns, first_rewards, first_observations = [], [], []
+    for start in range(0, len(observations), CHUNK):
+        chunk = observations[start:start + CHUNK]
+        envs = [gym.make(env_id) for _ in chunk]
+        try:
+            for seed, (env, observation) in enumerate(zip(envs, chunk.numpy())):
+                env.reset(seed=seed)
+                set_state_from_observation(env, observation)
+            current, total = chunk.clone(), torch.zeros(len(chunk), dtype=torch.float64)
+            alive = torch.ones(len(chunk), dtype=torch.bool)
+            for k in range(horizon):
+                actions = (policy[start:start + CHUNK] if isinstance(policy, torch.Tensor) else policy(current)).numpy()
+                for i in alive.nonzero().flatten().tolist():
+                    observation, reward, terminated, _, _ = envs[i].step(actions[i])
+                    total[i] += gamma ** k * reward
+                    current[i] = torch.as_tensor(observation, dtype=current.dtype)
+                    if k == 0:
+                        first_rewards.append(reward)
+                    alive[i] = not terminated
+                if k == 0:
+                    first_observations.append(current.clone())
+        finally:
+            for env in envs:
+                env.close()
+        returns.append(total)
+    return torch.cat(returns).float(), torch.tensor(first_rewards), torch.cat(first_observations)
+
+
+def run_config(run_dir: Path):
+    """The run's ``config.yaml`` over the recipe's defaults: options added to the recipe after the run was
+    trained take their defaults, which are what the code did before they existed."""
+    with initialize_config_dir(str(REPO / "recipes" / "config"), version_base="1.3"):
+        defaults = compose("config")
+    cfg = OmegaConf.merge(defaults, OmegaConf.load(run_dir / "config.yaml"))
+    with open_dict(cfg):
+        cfg.device = "cpu"
+    return cfg
+
+
+def retrain_value(cfg, data, tsidm, action_spec):
+    """V trained as the run's stage 2 trained it (see the module docstring), with its logged losses."""
+    stage2 = make_stage2(cfg, data, tsidm, action_spec)
+    losses = {}
+    for step in tqdm.trange(cfg.policy.steps, desc="retraining V", mininterval=5.0):
+        value_losses = stage2.value_loss(stage2.buffer.sample())
+        stage2.value_optim.zero_grad()
+        value_losses["loss_value"].backward()
+        stage2.value_optim.step()
+        stage2.target_updater.step()
+        if (step + 1) % cfg.logger.log_interval == 0:
+            losses[step + 1] = value_losses["loss_value"].item()
+    value_loss = stage2.value_loss
+
+    @torch.no_grad()
+    def value(latent: torch.Tensor) -> torch.Tensor:
+        td = TensorDict({value_loss.value_network.in_keys[0]: latent}, batch_size=latent.shape[:-1])
+        with value_loss.value_network_params.to_module(value_loss.value_network, preserve_module_state=False):
+            return value_loss.value_network(td)[value_loss.tensor_keys.value].squeeze(-1)
+
+    return value, losses, float(cfg.value.gamma)
+
+
+def loss_match(run_dir: Path, losses: dict[int, float]) -> dict[str, float]:
+    """The retrained V's logged losses against the run's own: the largest relative difference and where."""
+    logged = dict(load_training_state(run_dir / "state.pt")["policy_history"]["value/loss_value"])
+    shared = sorted(set(logged) & set(losses))
+    gaps = [abs(losses[s] - logged[s]) / max(abs(logged[s]), 1e-12) for s in shared]
+    worst = max(range(len(shared)), key=gaps.__getitem__)
+    return {"steps_compared": len(shared), "max_relative_gap": gaps[worst], "at_step": shared[worst],
+            "first_step_gap": gaps[0]}
+
+
+def _median(x: torch.Tensor) -> float:
+    return x.median().item()
+
+
+def value_delivery(run_dir: Path) -> dict:
+    run = load_finished_run(run_dir)
+    cfg = run_config(run_dir)
+    data, _ = make_data(cfg)  # the rows in the trainer's order
+    value, losses, gamma = retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched)
+    tsidm = run.tsidm
+    ends, recorded_end = episode_ends(data), data["next", "done"].squeeze(-1)
+    remaining = steps_to_end(ends)
+    ended = torch.zeros(len(data), dtype=torch.bool)  # rows of an episode the data records to its end
+    for row in range(len(data) - 1, -1, -1):
+        ended[row] = recorded_end[row] if ends[row] else ended[row + 1]
+    with torch.no_grad():
+        latent = tsidm.encode_state(data["observation"])
+        v_data = value(latent)
+    rtg_rows = ended | (remaining >= RTG_MARGIN)
+    rtg = recorded_returns(data, gamma)
+    spread = v_data.std().item()
+    # start states: the data's return over the horizon is known there
+    eligible = (ended | (remaining >= HORIZON)).nonzero().flatten()
+    rows = eligible[torch.randperm(len(eligible), generator=torch.Generator().manual_seed(0))[:STATES]]
+    start = data[rows]
+    observation = start["observation"]
+
+    def actor(observations: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            return run.actor(TensorDict({"observation": observations}, batch_size=[len(observations)]))["action"]
+
+    bc_net = train_bc(data["observation"], data["action"], BC_STEPS, seed=int(run.results["seed"]))
+
+    def bc(observations: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return bc_net(observations)
+
+    env_id = run.task.env_id
+    actor_return, actor_reward, actor_first = rollout_returns(env_id, observation, actor, HORIZON, gamma)
+    bc_return, _, _ = rollout_returns(env_id, observation, bc, HORIZON, gamma)
+    _, data_reward, data_first = rollout_returns(env_id, observation, start["action"], 1, gamma)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        acted = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))
+        z, proposal = acted[LATENT_KEY], acted[GUIDE_KEY]
+        promised = (value(proposal) - value(tsidm.encode_state(start["next", "observation"]))) / spread
+        delivered = (value(tsidm.encode_state(actor_first)) - value(tsidm.encode_state(data_first))) / spread
+    data_return = recorded_returns(data, gamma, HORIZON)[rows]
+    return {
+        "final_score": run.results["final_normalized_score_mean"], "gamma": gamma, "states": len(rows),
+        "horizon": HORIZON, "value_loss_match": loss_match(run_dir, losses),
+        "value": {"rank_with_return_to_go": spearman(v_data[rtg_rows].tolist(), rtg[rtg_rows].tolist()),
+                  "return_to_go_rows": int(rtg_rows.sum()), "spread": spread,
+                  "range": [v_data.min().item(), v_data.max().item()],
+                  "return_to_go_range": [rtg[rtg_rows].min().item(), rtg[rtg_rows].max().item()]},
+        "promised": {"median": _median(promised), "share_positive": (promised > 0).float().mean().item()},
+        "delivered": {"median": _median(delivered), "share_positive": (delivered > 0).float().mean().item(),
+                      "rank_with_promised": spearman(promised.tolist(), delivered.tolist())},
+        "reward": {"median": _median(actor_reward - data_reward),
+                   "share_positive": (actor_reward > data_reward).float().mean().item()},
+        "horizon_return": {"actor": _median(actor_return), "bc": _median(bc_return), "data": _median(data_return),
+                           "actor_minus_bc": _median(actor_return - bc_return),
+                           "actor_over_bc": (actor_return > bc_return).float().mean().item(),
+                           "rank_promised_with_actor_minus_bc": spearman(promised.tolist(),
+                                                                         (actor_return - bc_return).tolist())},
+    }
+
+
+def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
+    """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
+    records = run_results(RESULTS) if records is None else records
+    lines = ["| arm | task | seed | run's score | V rank with return-to-go | V loss: retrained against the run's "
+             "| promised: V(proposal) − V(data's next) | delivered: V(actor's next) − V(data action's next) "
+             "| reward: actor − data action | rank promised, delivered "
+             f"| {HORIZON}-step return: actor, BC, data | actor above BC |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for (arm, task, seed), r in sorted(records.items()):
+        h = r["horizon_return"]
+        lines.append(
+            f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['value']['rank_with_return_to_go']:.2f} "
+            f"| {r['value_loss_match']['max_relative_gap']:.1e} "
+            f"| {r['promised']['median']:+.3f} ({r['promised']['share_positive']:.0%}) "
+            f"| {r['delivered']['median']:+.3f} ({r['delivered']['share_positive']:.0%}) "
+            f"| {r['reward']['median']:+.3f} ({r['reward']['share_positive']:.0%}) "
+            f"| {r['delivered']['rank_with_promised']:.2f} "
+            f"| {h['actor']:.1f}, {h['bc']:.1f}, {h['data']:.1f} | {h['actor_over_bc']:.0%} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
+    parser.add_argument("--name", help="results land in results/value_delivery/<name>.json")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
+    parser.add_argument("--table", action="store_true", help="print the table of every reading")
+    args = parser.parse_args(argv)
+    if args.table:
+        print(table())
+        return
+    if args.run_dir is None or args.name is None:
+        parser.error("--run-dir and --name are required (or --table)")
+    for required in ("config.yaml", "results.json", "tsidm.pt", "policy.pt", "state.pt"):
+        if not (args.run_dir / required).exists():
+            parser.error(f"{args.run_dir / required} is missing: pass a finished run folder")
+    torch.set_num_threads(args.threads)
+    out = RESULTS / f"{args.name}.json"
+    if skip_existing(out, args.force):
+        return
+    record = value_delivery(args.run_dir)
+    record.update(run_dir=str(args.run_dir), command=invocation(),
+                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  machine={**machine_description(), "threads": args.threads})
+    h = record["horizon_return"]
+    print(f"promised {record['promised']['median']:+.3f}, delivered {record['delivered']['median']:+.3f}; "
+          f"{HORIZON}-step return actor {h['actor']:.1f}, BC {h['bc']:.1f}, data {h['data']:.1f}")
+    write_result(out, record, args.force)
+
+
+if __name__ == "__main__":
+    main()
