@@ -78,7 +78,7 @@ def _miss(reached: torch.Tensor, target: torch.Tensor, latent: torch.Tensor) -> 
 
 @torch.no_grad()
 def one_step_readings(run, states: int = ONE_STEP_STATES) -> dict[str, dict[str, float]]:
-    """From states of the run's own data, one simulator step each, in latent space:
+    r"""From states of the run's own data, one simulator step each, in latent space:
 
     * ``data_action``: the data's action against the data's next state: how exactly this simulator
       replays the dataset (its version of MuJoCo is not the one that recorded D4RL);
