@@ -6,7 +6,7 @@
 RESULTS.md is the one place the study's numbers are published: every arm on every task (seeds,
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
---report``, ``heldout_selection --table`` and ``realization --table``, each under the command that prints it alone.
+--report``, ``heldout_selection --table``, ``realization --table`` and ``value_delivery --table``, each under the command that prints it alone.
 Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
 it is generated and is not edited by hand.
 """
@@ -20,7 +20,7 @@ import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
 from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale, realization,
-                                     summary)
+                                     summary, value_delivery)
 
 RESULTS = summary.HERE / "results"
 OUT = summary.HERE / "RESULTS.md"
@@ -154,6 +154,7 @@ def render() -> str:
         "",
         *heldout_section(),
         *realization_section(),
+        *value_delivery_section(),
     ])
 
 
@@ -184,6 +185,21 @@ def realization_section() -> list[str]:
         "better than staying put), over whole episodes and over their opening steps, which come before a fall.",
         "Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps (`benchmarks/results/long20k`); arm `reach1`:",
         "the preset with `guide.reach_weight=1` at the shared budget (`results/reach1`).",
+    ])
+
+
+def value_delivery_section() -> list[str]:
+    return reading_section(value_delivery, "Is the value the guide promises delivered?", [
+        f"`{value_delivery.COMMAND} --table`: V (Eq. 8) trained again exactly as each finished run trained it",
+        "(\"V loss\": the largest relative gap between the retrained V's logged losses and the run's; 0 is the run's",
+        f"V), read from {value_delivery.STATES} of the run's training states. V rank: rank correlation of V(φ(s)) with the",
+        "data's discounted return-to-go. Promised: V of the guide's proposal minus V of the data's next latent;",
+        "delivered: V at the state the actor's action reaches minus V at the state the data's own action reaches,",
+        "the simulator restarted from the data state; both over V's standard deviation on the data, medians, with",
+        "the share of states above 0. Reward: the same two steps' rewards. Rank promised, delivered: over the",
+        f"states. {value_delivery.HORIZON}-step return: discounted (γ of the run) from the data states, medians, for",
+        "the actor, for BC fitted to the same transitions, and the data's own recorded return; actor above BC:",
+        "the share of states. Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps.",
     ])
 
 
