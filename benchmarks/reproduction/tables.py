@@ -199,7 +199,8 @@ def value_delivery_section() -> list[str]:
         "the share of states above 0. Reward: the same two steps' rewards. Rank promised, delivered: over the",
         f"states. {value_delivery.HORIZON}-step return: discounted (γ of the run) from the data states, medians, for",
         "the actor, for BC fitted to the same transitions, and the data's own recorded return; actor above BC:",
-        "the share of states. Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps.",
+        "the share of states. Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps; arm `reach1`: the preset",
+        "with `guide.reach_weight=1` at the shared budget (`results/reach1`).",
     ])
 
 
