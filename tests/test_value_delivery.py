@@ -88,6 +88,28 @@ def test_rollouts_from_data_states_match_the_simulator_stepped_by_hand(monkeypat
         value_delivery.rollout_returns("Hopper-v4", starts, actions, 2, 0.99)
 
 
+def test_random_actions_are_drawn_inside_the_action_box(monkeypatch):
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(value_delivery, "RANDOM_ACTIONS", 3)
+    env = gym.make("Hopper-v4")
+    observation, _ = env.reset(seed=1)
+    observation = env.step(np.array([0.5, 0.5, -0.5]))[0]
+    starts = torch.as_tensor(np.array([observation, observation]))
+    # a box of one point: every draw is that action
+    point = torch.tensor([0.2, -0.7, 0.4])
+    spec = SimpleNamespace(space=SimpleNamespace(low=point, high=point))
+    reached = value_delivery.random_action_steps("Hopper-v4", starts, spec)
+    expected = realization.one_step(env, starts, point.double().expand(2, 3))
+    assert len(reached) == 3
+    for r in reached:
+        np.testing.assert_allclose(r.numpy(), expected.numpy(), atol=1e-9)
+    # the unit box: the draws differ, so the states reached differ
+    unit = SimpleNamespace(space=SimpleNamespace(low=-torch.ones(3), high=torch.ones(3)))
+    a, b, _ = value_delivery.random_action_steps("Hopper-v4", starts, unit)
+    assert not torch.allclose(a, b)
+
+
 @pytest.fixture(scope="module")
 def recipe_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("value_delivery") / "run"
@@ -124,6 +146,7 @@ def test_a_reading_of_a_recipe_run(recipe_run, monkeypatch):
     assert record["states"] == 12 and record["value_loss_match"]["max_relative_gap"] == 0.0
     for key in ("promised", "delivered", "reward"):
         assert 0.0 <= record[key]["share_positive"] <= 1.0
+    assert 0.0 <= record["best_random"]["share_promised_above"] <= 1.0
     horizon = record["horizon_return"]
     # five steps of the data's rewards at most, and the simulator's hopper earns at least its alive bonus
     most = 5 * load_finished_run(recipe_run, episodes=1).data["next", "reward"].max().item()

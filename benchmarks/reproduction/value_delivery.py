@@ -24,6 +24,8 @@ them or a recorded end), readings, each the median over states of a difference:
 * ``promised``: V(π_g(z)) − V(z'), the proposal against the data's next latent, over V's spread on the data;
 * ``delivered``: V(φ(s₁)) with s₁ the state the actor's action reaches, minus V at the state the data's own
   action reaches in the same simulator, over the same spread; ``reward``: the same two steps' rewards;
+* ``best_random``: the largest of the same delivered gain over ``RANDOM_ACTIONS`` actions drawn uniformly
+  from the action box: how much V one step can change at all, against which ``promised`` is read;
 * ``horizon``: the discounted return over ``HORIZON`` steps from the data state, for the actor, for BC fitted
   to the same transitions (:func:`~benchmarks.reproduction.action_error.train_bc`, ``BC_STEPS``), and the
   data's own recorded return; ``actor_over_bc``: the share of states where the actor's return is higher.
@@ -52,7 +54,7 @@ from benchmarks.reproduction.action_error import train_bc
 from benchmarks.reproduction.heldout_selection import spearman
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.proposal_cap import load_finished_run
-from benchmarks.reproduction.realization import set_state_from_observation
+from benchmarks.reproduction.realization import one_step, set_state_from_observation
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 from torchrl_tels.trainer import make_data, make_stage2
 from torchrl_tels.training import load_training_state
@@ -64,6 +66,7 @@ HORIZON = 100
 #: γ^300 < 0.05: a return-to-go cut this far from the data's last step is within 5 % of the full one.
 RTG_MARGIN = 300
 BC_STEPS = 5000
+RANDOM_ACTIONS = 16
 #: Gymnasium MuJoCo envs stepped side by side per chunk of start states (memory, not speed).
 CHUNK = 250
 
@@ -144,6 +147,21 @@ def run_config(run_dir: Path):
     return cfg
 
 
+def random_action_steps(env_id: str, observations: torch.Tensor, action_spec) -> list[torch.Tensor]:
+    """The observation one step on from each state under each of ``RANDOM_ACTIONS`` uniform actions (a fixed
+    draw)."""
+    generator = torch.Generator().manual_seed(0)
+    low, high = action_spec.space.low.to(observations.dtype), action_spec.space.high.to(observations.dtype)
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    try:
+        return [one_step(env, observations, low + (high - low) * torch.rand(len(observations), len(low),
+                                                                            generator=generator))
+                for _ in range(RANDOM_ACTIONS)]
+    finally:
+        env.close()
+
+
 def retrain_value(cfg, data, tsidm, action_spec):
     """V trained as the run's stage 2 trained it (see the module docstring), with its logged losses."""
     stage2 = make_stage2(cfg, data, tsidm, action_spec)
@@ -222,7 +240,11 @@ def value_delivery(run_dir: Path) -> dict:
         acted = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))
         z, proposal = acted[LATENT_KEY], acted[GUIDE_KEY]
         promised = (value(proposal) - value(tsidm.encode_state(start["next", "observation"]))) / spread
-        delivered = (value(tsidm.encode_state(actor_first)) - value(tsidm.encode_state(data_first))) / spread
+        data_next_value = value(tsidm.encode_state(data_first))
+        delivered = (value(tsidm.encode_state(actor_first)) - data_next_value) / spread
+        best_random = torch.stack([value(tsidm.encode_state(reached)) - data_next_value for reached in
+                                   random_action_steps(env_id, observation, run.env.action_spec_unbatched)]
+                                  ).amax(0) / spread
     data_return = recorded_returns(data, gamma, HORIZON)[rows]
     return {
         "final_score": run.results["final_normalized_score_mean"], "gamma": gamma, "states": len(rows),
@@ -234,6 +256,8 @@ def value_delivery(run_dir: Path) -> dict:
         "promised": {"median": _median(promised), "share_positive": (promised > 0).float().mean().item()},
         "delivered": {"median": _median(delivered), "share_positive": (delivered > 0).float().mean().item(),
                       "rank_with_promised": spearman(promised.tolist(), delivered.tolist())},
+        "best_random": {"median": _median(best_random), "actions": RANDOM_ACTIONS,
+                        "share_promised_above": (promised > best_random).float().mean().item()},
         "reward": {"median": _median(actor_reward - data_reward),
                    "share_positive": (actor_reward > data_reward).float().mean().item()},
         "horizon_return": {"actor": _median(actor_return), "bc": _median(bc_return), "data": _median(data_return),
@@ -244,14 +268,19 @@ def value_delivery(run_dir: Path) -> dict:
     }
 
 
+def _best_random(record: dict) -> str:
+    best = record.get("best_random")  # readings from before it was recorded lack it
+    return "—" if best is None else f"{best['median']:+.3f} (promised above: {best['share_promised_above']:.0%})"
+
+
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
     records = run_results(RESULTS) if records is None else records
     lines = ["| arm | task | seed | run's score | V rank with return-to-go | V loss: retrained against the run's "
              "| promised: V(proposal) − V(data's next) | delivered: V(actor's next) − V(data action's next) "
-             "| reward: actor − data action | rank promised, delivered "
+             f"| best of {RANDOM_ACTIONS} random actions | reward: actor − data action | rank promised, delivered "
              f"| {HORIZON}-step return: actor, BC, data | actor above BC |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for (arm, task, seed), r in sorted(records.items()):
         h = r["horizon_return"]
         lines.append(
@@ -259,7 +288,7 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
             f"| {r['value_loss_match']['max_relative_gap']:.1e} "
             f"| {r['promised']['median']:+.3f} ({r['promised']['share_positive']:.0%}) "
             f"| {r['delivered']['median']:+.3f} ({r['delivered']['share_positive']:.0%}) "
-            f"| {r['reward']['median']:+.3f} ({r['reward']['share_positive']:.0%}) "
+            f"| {_best_random(r)} | {r['reward']['median']:+.3f} ({r['reward']['share_positive']:.0%}) "
             f"| {r['delivered']['rank_with_promised']:.2f} "
             f"| {h['actor']:.1f}, {h['bc']:.1f}, {h['data']:.1f} | {h['actor_over_bc']:.0%} |")
     return "\n".join(lines)
