@@ -17,6 +17,11 @@ arms at the shared budget (3k TS-IDM, 5k policy steps, ten evaluations of ten ep
   policy (100 on a mean over latent entries, i.e. ``guide.tsym_weight`` = 100 / latent size: 9.09 on
   hopper, 5.88 on walker2d and halfcheetah); TSRL's ℓ_dyn-free pre-training phase and L1 penalty are
   not reproduced;
+- ``preset + reachability term``: ``guide.reach_weight=1`` (:class:`~torchrl_tels.objectives.TSymGuideLoss`);
+- ``in-sample guide of Eq. (10)``: the preset with the paper's AntMaze guide, ``guide.mode=stochastic``, at
+  POR's MuJoCo temperature (``guide.alpha=3``) and IQL's reward scale 1000 / (return range) of each set
+  (``dataset.reward_scale``, :func:`benchmarks.baselines.return_range_scale`), so that V is never read at a
+  state the data does not hold;
 - ``BC``: the baseline grid's BC on the same file and budget.
 
 Columns: each seed's final score (mean of the ten evaluations), the mean, the mean of the second half of
@@ -45,6 +50,7 @@ ARMS = (
     ("standardized, guide ℓ_Tsym ×50", ("scale_standardized_tsym50",)),
     ("TSRL-style weighting", ("tsrl_weighting",)),
     ("preset + reachability term (guide.reach_weight=1)", ("reach1",)),
+    ("preset with the in-sample guide of Eq. (10) (guide.mode=stochastic, α = 3, IQL reward scale)", ("awr_guide",)),
     ("BC", ("grid:bc",)),
 )
 #: The ``ae`` lead untangled: the ``ae`` TS-IDM (ℓ_rec only) under the preset of the time (alpha = 0.01,
