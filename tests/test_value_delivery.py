@@ -18,15 +18,17 @@ from torchrl_tels.trainer import make_data
 from tests.test_resume import RECIPE, REPO_ROOT
 
 
-def _episodes(lengths, terminated_last=True, seed=0):
+def _episodes(lengths, terminated=None, seed=0):
+    """Episodes of random rewards, one after another; ``terminated[i]``: whether episode i ends in a
+    termination (all of them by default) rather than a timeout."""
     generator = torch.Generator().manual_seed(seed)
     episode = torch.cat([torch.full((n,), i) for i, n in enumerate(lengths)])
     ends = torch.cat([episode[1:] != episode[:-1], torch.tensor([True])])
-    done = ends.clone()
-    if not terminated_last:
-        done[-1] = False
+    terminal = torch.zeros(len(episode), dtype=torch.bool)
+    terminal[ends.nonzero().flatten()[torch.tensor(terminated if terminated is not None else [True] * len(lengths))]] = True
     reward = torch.rand(len(episode), 1, generator=generator)
-    return TensorDict({"episode": episode, "next": {"reward": reward, "done": done.unsqueeze(-1)}},
+    return TensorDict({"episode": episode, "next": {"reward": reward, "done": ends.unsqueeze(-1),
+                                                    "terminated": terminal.unsqueeze(-1)}},
                       batch_size=[len(episode)])
 
 
@@ -44,77 +46,85 @@ def _direct_returns(data, gamma, horizon=None):
 
 @pytest.mark.parametrize("horizon", [None, 1, 4, 30])
 def test_recorded_returns_match_a_direct_sum_within_each_episode(horizon):
-    data = _episodes([7, 1, 12, 5], terminated_last=False)
+    data = _episodes([7, 1, 12, 5])
     got = value_delivery.recorded_returns(data, 0.9, horizon)
     torch.testing.assert_close(got, _direct_returns(data, 0.9, horizon), rtol=1e-5, atol=1e-5)
 
 
-def test_steps_to_end_counts_the_rows_left_in_each_episode():
-    ends = value_delivery.episode_ends(_episodes([3, 1, 2]))
-    assert ends.tolist() == [False, False, True, True, False, True]
-    assert value_delivery.steps_to_end(ends).tolist() == [2, 1, 0, 0, 1, 0]
+def test_episode_ends_steps_to_end_and_which_episodes_terminate():
+    data = _episodes([3, 1, 2, 2], terminated=[True, False, False, True])
+    ends = value_delivery.episode_ends(data)
+    assert ends.tolist() == [False, False, True, True, False, True, False, True]
+    assert value_delivery.steps_to_end(ends).tolist() == [2, 1, 0, 0, 1, 0, 1, 0]
+    # a timed-out episode's rows have no known return-to-go, though the data marks them done
+    assert value_delivery.terminated_episodes(data).tolist() == [True] * 3 + [False] * 3 + [True] * 2
 
 
-def test_rollouts_from_data_states_match_the_simulator_stepped_by_hand(monkeypatch):
-    monkeypatch.setattr(value_delivery, "CHUNK", 2)  # three chunks: the actions must follow their states
+def _hopper_states(count=5):
     env = gym.make("Hopper-v4")
     observation, _ = env.reset(seed=0)
     starts = []
-    for step in range(5):
+    for step in range(count):
         observation = env.step(np.array([0.3, -0.5, 0.8]) * (-1) ** step)[0]
         starts.append(observation)
-    starts = torch.as_tensor(np.array(starts))
-    actions = torch.linspace(-0.9, 0.9, 15, dtype=starts.dtype).reshape(5, 3)
-    _, rewards, firsts = value_delivery.rollout_returns("Hopper-v4", starts, actions, 1, 0.99)
-    np.testing.assert_allclose(firsts.numpy(), realization.one_step(env, starts, actions).numpy(), atol=1e-9)
+    return env, torch.as_tensor(np.array(starts))
 
-    def falling(observations):  # full thrust one way: the hopper falls within the horizon from some states
-        return torch.ones(len(observations), 3, dtype=observations.dtype)
+
+def test_rollouts_from_data_states_match_the_simulator_stepped_by_hand(monkeypatch):
+    monkeypatch.setattr(value_delivery, "CHUNK", 2)  # three chunks of envs
+    env, starts = _hopper_states()
+
+    def policy(observations):  # reads its observations, and falls within the horizon from some states
+        return torch.tanh(3 * observations[:, 2:5]).clamp(-1, 1)
 
     horizon, gamma = 60, 0.95
-    returns, _, _ = value_delivery.rollout_returns("Hopper-v4", starts, falling, horizon, gamma)
-    for start, got, first_reward in zip(starts.numpy(), returns.tolist(), rewards.tolist()):
+    returns = value_delivery.rollout_returns("Hopper-v4", starts, policy, horizon, gamma)
+    falls = 0
+    for start, got in zip(starts.numpy(), returns.tolist()):
         realization.set_state_from_observation(env, start)
-        expected = 0.0
+        observation, expected = start, 0.0
         for k in range(horizon):
-            _, reward, terminated, _, _ = env.step(np.ones(3))
+            observation, reward, terminated, _, _ = env.step(policy(torch.as_tensor(observation[None]))[0].numpy())
             expected += gamma ** k * reward
             if terminated:
+                falls += 1
                 break
         assert got == pytest.approx(expected, rel=1e-5)
-    realization.set_state_from_observation(env, starts[0].numpy())
-    assert rewards[0].item() == pytest.approx(env.step(actions[0].numpy())[1], rel=1e-6)
-    with pytest.raises(ValueError, match="horizon must be 1"):
-        value_delivery.rollout_returns("Hopper-v4", starts, actions, 2, 0.99)
+    assert falls > 0  # termination is exercised
+
+
+def test_steps_from_observations_report_reward_and_termination():
+    env, starts = _hopper_states(2)
+    actions = torch.tensor([[0.2, -0.7, 0.4], [1.0, 1.0, 1.0]], dtype=starts.dtype)
+    reached, rewards, terminated = realization.step_from_observations(env, starts, actions)
+    for start, action, obs, reward, done in zip(starts.numpy(), actions.numpy(), reached, rewards, terminated):
+        realization.set_state_from_observation(env, start)
+        expected = env.step(action)
+        np.testing.assert_allclose(obs.numpy(), expected[0], atol=1e-9)
+        assert reward.item() == pytest.approx(expected[1], rel=1e-9) and done.item() == expected[2]
+    np.testing.assert_allclose(realization.one_step(env, starts, actions).numpy(), reached.numpy(), atol=0)
 
 
 def test_random_actions_are_drawn_inside_the_action_box(monkeypatch):
     from types import SimpleNamespace
 
     monkeypatch.setattr(value_delivery, "RANDOM_ACTIONS", 3)
-    env = gym.make("Hopper-v4")
-    observation, _ = env.reset(seed=1)
-    observation = env.step(np.array([0.5, 0.5, -0.5]))[0]
-    starts = torch.as_tensor(np.array([observation, observation]))
-    # a box of one point: every draw is that action
     point = torch.tensor([0.2, -0.7, 0.4])
-    spec = SimpleNamespace(space=SimpleNamespace(low=point, high=point))
-    reached = value_delivery.random_action_steps("Hopper-v4", starts, spec)
-    expected = realization.one_step(env, starts, point.double().expand(2, 3))
-    assert len(reached) == 3
-    for r in reached:
-        np.testing.assert_allclose(r.numpy(), expected.numpy(), atol=1e-9)
-    # the unit box: the draws differ, so the states reached differ
-    unit = SimpleNamespace(space=SimpleNamespace(low=-torch.ones(3), high=torch.ones(3)))
-    a, b, _ = value_delivery.random_action_steps("Hopper-v4", starts, unit)
-    assert not torch.allclose(a, b)
+    drawn = value_delivery.random_actions(SimpleNamespace(space=SimpleNamespace(low=point, high=point)), 4)
+    assert len(drawn) == 3 and all(torch.equal(d, point.expand(4, 3)) for d in drawn)
+    low, high = torch.tensor([-1.0, 0.0, 2.0]), torch.tensor([1.0, 0.5, 3.0])
+    drawn = torch.stack(value_delivery.random_actions(SimpleNamespace(space=SimpleNamespace(low=low, high=high)), 500))
+    assert ((drawn >= low) & (drawn <= high)).all()
+    # uniform over the box: the mean of 1,500 draws near the box's centre (std of the mean < 0.03 of the width)
+    torch.testing.assert_close(drawn.mean((0, 1)), (low + high) / 2, atol=0.1 * (high - low).max().item(), rtol=0)
 
 
 @pytest.fixture(scope="module")
 def recipe_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("value_delivery") / "run"
+    # two evaluation episodes: the batched (vector-env) evaluation runs between the value updates
     overrides = ["domain=paper", "budget=smoke", "threads=1", "seed=2", "tsidm.beta=1.0", "tsidm.steps=20",
-                 "policy.steps=120", "eval.interval=60", "eval.episodes=1", "eval.max_steps=30",
+                 "policy.steps=120", "eval.interval=60", "eval.episodes=2", "eval.max_steps=30",
                  "logger.log_interval=10", f"run_dir={run_dir}"]
     proc = subprocess.run([sys.executable, str(RECIPE), *overrides], cwd=REPO_ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -63,11 +63,20 @@ def set_state_from_observation(env, observation: np.ndarray) -> None:
 def one_step(env, observations: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     """The observation one env step after each of ``observations`` under its action, the simulator
     restarted from each."""
-    reached = []
+    return step_from_observations(env, observations, actions)[0]
+
+
+def step_from_observations(env, observations: torch.Tensor, actions: torch.Tensor):
+    """:func:`one_step`'s observations, with each step's reward and whether it terminated the episode."""
+    reached, rewards, terminated = [], [], []
     for observation, action in zip(observations.numpy(), actions.numpy()):
         set_state_from_observation(env, observation)
-        reached.append(env.step(action)[0])
-    return torch.as_tensor(np.array(reached), dtype=observations.dtype)
+        step = env.step(action)
+        reached.append(step[0])
+        rewards.append(step[1])
+        terminated.append(step[2])
+    return (torch.as_tensor(np.array(reached), dtype=observations.dtype), torch.tensor(rewards),
+            torch.tensor(terminated))
 
 
 def _miss(reached: torch.Tensor, target: torch.Tensor, latent: torch.Tensor) -> dict[str, float]:

@@ -14,16 +14,24 @@ loop drifts, not from an optimistic V.
 A finished run keeps no V, so V (Eq. 8) is trained again exactly as stage 2 trained it: the run's config,
 the trainer's own :func:`~torchrl_tels.trainer.make_stage2` (same seed, networks and replay buffer) and the
 same number of steps; V's update never reads the guide, so with the same batches it is the run's V. The
-record keeps how closely the retrained V's logged loss matches the run's (``value_loss_match``).
+record keeps how closely the retrained V's logged loss matches the run's (``value_loss_match``): a
+stochastic guide with ℓ_Tsym draws from torch's stream at every step (``rsample``), as does an actor acting
+with dropout at every evaluation, so those runs' V is retrained on other batches and the gap shows it.
+
+Return-to-go and the data's return are known only where the data records an episode to its termination,
+or far enough from the last recorded step (a timeout or the end of the file is not an end of the task).
 
 From ``STATES`` of the run's training states (a fixed draw among those with ``HORIZON`` steps of data after
 them or a recorded end), readings, each the median over states of a difference:
 
 * ``value_rank``: rank correlation of V(φ(s)) with the data's discounted return-to-go (episodes that the
   data records to their end, or states at least ``RTG_MARGIN`` steps before the data's last step);
-* ``promised``: V(π_g(z)) − V(z'), the proposal against the data's next latent, over V's spread on the data;
-* ``delivered``: V(φ(s₁)) with s₁ the state the actor's action reaches, minus V at the state the data's own
-  action reaches in the same simulator, over the same spread; ``reward``: the same two steps' rewards;
+* ``promised``: V(π_g(z)) − V(φ(s₁ᵈ)), the proposal against the state s₁ᵈ the data's own action reaches in
+  this simulator, over V's spread on the data (``replay_gap``: V(φ(s₁ᵈ)) − V(z'), against the data's recorded
+  next latent z', which this simulator does not replay exactly);
+* ``delivered``: V(φ(s₁)) with s₁ the state the actor's action reaches, minus V(φ(s₁ᵈ)), over the same
+  spread; ``reward``: the same two steps' rewards. A step that ends the episode (a fall) reaches a state of
+  value 0, as V's own targets treat it;
 * ``best_random``: the largest of the same delivered gain over ``RANDOM_ACTIONS`` actions drawn uniformly
   from the action box: how much V one step can change at all, against which ``promised`` is read;
 * ``horizon``: the discounted return over ``HORIZON`` steps from the data state, for the actor, for BC fitted
@@ -54,9 +62,9 @@ from benchmarks.reproduction.action_error import train_bc
 from benchmarks.reproduction.heldout_selection import spearman
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.proposal_cap import load_finished_run
-from benchmarks.reproduction.realization import one_step, set_state_from_observation
-from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
-from torchrl_tels.trainer import make_data, make_stage2
+from benchmarks.reproduction.realization import set_state_from_observation, step_from_observations
+from torchrl_tels.modules.actors import GUIDE_KEY
+from torchrl_tels.trainer import autocast, make_data, make_stage2
 from torchrl_tels.training import load_training_state
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "value_delivery"
@@ -75,6 +83,16 @@ def episode_ends(data) -> torch.Tensor:
     """True on each episode's last row (the data's episodes lie in order, one after another)."""
     episode = data["episode"]
     return torch.cat([episode[1:] != episode[:-1], torch.ones(1, dtype=torch.bool)])
+
+
+def terminated_episodes(data) -> torch.Tensor:
+    """True on every row of an episode the data records to its termination (a timeout, or an episode the file
+    or a subset cuts, is not one: its return-to-go is not known)."""
+    ends, terminated = episode_ends(data), data["next", "terminated"].reshape(-1)
+    out = torch.zeros(len(ends), dtype=torch.bool)
+    for row in range(len(ends) - 1, -1, -1):
+        out[row] = terminated[row] if ends[row] else out[row + 1]
+    return out
 
 
 def steps_to_end(ends: torch.Tensor) -> torch.Tensor:
@@ -102,13 +120,10 @@ def recorded_returns(data, gamma: float, horizon: int | None = None) -> torch.Te
     return total
 
 
-def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: int, gamma: float):
+def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: int, gamma: float) -> torch.Tensor:
     """From each observation's state (:func:`set_state_from_observation`), ``horizon`` steps of ``policy``
-    (a batch of observations → actions, or with ``horizon=1`` a tensor of each state's action): the
-    discounted returns, the first step's reward and observation."""
-    if isinstance(policy, torch.Tensor) and horizon != 1:
-        raise ValueError("a tensor of actions is one step per state: horizon must be 1")
-    returns, first_rewards, first_observations = [], [], []
+    (a batch of observations → actions), each episode stopped where it terminates: the discounted returns."""
+    returns = []
     for start in range(0, len(observations), CHUNK):
         chunk = observations[start:start + CHUNK]
         envs = [gym.make(env_id) for _ in chunk]
@@ -119,21 +134,17 @@ def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: in
             current, total = chunk.clone(), torch.zeros(len(chunk), dtype=torch.float64)
             alive = torch.ones(len(chunk), dtype=torch.bool)
             for k in range(horizon):
-                actions = (policy[start:start + CHUNK] if isinstance(policy, torch.Tensor) else policy(current)).numpy()
+                actions = policy(current).numpy()
                 for i in alive.nonzero().flatten().tolist():
                     observation, reward, terminated, _, _ = envs[i].step(actions[i])
                     total[i] += gamma ** k * reward
                     current[i] = torch.as_tensor(observation, dtype=current.dtype)
-                    if k == 0:
-                        first_rewards.append(reward)
                     alive[i] = not terminated
-                if k == 0:
-                    first_observations.append(current.clone())
         finally:
             for env in envs:
                 env.close()
         returns.append(total)
-    return torch.cat(returns).float(), torch.tensor(first_rewards), torch.cat(first_observations)
+    return torch.cat(returns).float()
 
 
 def run_config(run_dir: Path):
@@ -142,24 +153,19 @@ def run_config(run_dir: Path):
     with initialize_config_dir(str(REPO / "recipes" / "config"), version_base="1.3"):
         defaults = compose("config")
     cfg = OmegaConf.merge(defaults, OmegaConf.load(run_dir / "config.yaml"))
+    if cfg.dataset.size and cfg.dataset.subset != "trajectories":
+        raise SystemExit(f"error: {run_dir} trained on a subset of single transitions (dataset.subset="
+                         f"{cfg.dataset.subset}): its rows are not whole episodes, so returns cannot be read")
     with open_dict(cfg):
         cfg.device = "cpu"
     return cfg
 
 
-def random_action_steps(env_id: str, observations: torch.Tensor, action_spec) -> list[torch.Tensor]:
-    """The observation one step on from each state under each of ``RANDOM_ACTIONS`` uniform actions (a fixed
-    draw)."""
+def random_actions(action_spec, states: int) -> list[torch.Tensor]:
+    """``RANDOM_ACTIONS`` batches of ``states`` actions drawn uniformly from the spec's box (a fixed draw)."""
     generator = torch.Generator().manual_seed(0)
-    low, high = action_spec.space.low.to(observations.dtype), action_spec.space.high.to(observations.dtype)
-    env = gym.make(env_id)
-    env.reset(seed=0)
-    try:
-        return [one_step(env, observations, low + (high - low) * torch.rand(len(observations), len(low),
-                                                                            generator=generator))
-                for _ in range(RANDOM_ACTIONS)]
-    finally:
-        env.close()
+    low, high = action_spec.space.low, action_spec.space.high
+    return [low + (high - low) * torch.rand(states, len(low), generator=generator) for _ in range(RANDOM_ACTIONS)]
 
 
 def retrain_value(cfg, data, tsidm, action_spec):
@@ -167,7 +173,8 @@ def retrain_value(cfg, data, tsidm, action_spec):
     stage2 = make_stage2(cfg, data, tsidm, action_spec)
     losses = {}
     for step in tqdm.trange(cfg.policy.steps, desc="retraining V", mininterval=5.0):
-        value_losses = stage2.value_loss(stage2.buffer.sample())
+        with autocast(cfg):
+            value_losses = stage2.value_loss(stage2.buffer.sample())
         stage2.value_optim.zero_grad()
         value_losses["loss_value"].backward()
         stage2.value_optim.step()
@@ -205,16 +212,14 @@ def value_delivery(run_dir: Path) -> dict:
     data, _ = make_data(cfg)  # the rows in the trainer's order
     value, losses, gamma = retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched)
     tsidm = run.tsidm
-    ends, recorded_end = episode_ends(data), data["next", "done"].squeeze(-1)
-    remaining = steps_to_end(ends)
-    ended = torch.zeros(len(data), dtype=torch.bool)  # rows of an episode the data records to its end
-    for row in range(len(data) - 1, -1, -1):
-        ended[row] = recorded_end[row] if ends[row] else ended[row + 1]
+    remaining, ended = steps_to_end(episode_ends(data)), terminated_episodes(data)
     with torch.no_grad():
         latent = tsidm.encode_state(data["observation"])
         v_data = value(latent)
     rtg_rows = ended | (remaining >= RTG_MARGIN)
-    rtg = recorded_returns(data, gamma)
+    fitted = data.clone(False)  # the rewards V was fitted to
+    fitted["next", "reward"] = cfg.dataset.reward_scale * data["next", "reward"] + cfg.dataset.reward_bias
+    rtg = recorded_returns(fitted, gamma)
     spread = v_data.std().item()
     # start states: the data's return over the horizon is known there
     eligible = (ended | (remaining >= HORIZON)).nonzero().flatten()
@@ -233,18 +238,31 @@ def value_delivery(run_dir: Path) -> dict:
             return bc_net(observations)
 
     env_id = run.task.env_id
-    actor_return, actor_reward, actor_first = rollout_returns(env_id, observation, actor, HORIZON, gamma)
-    bc_return, _, _ = rollout_returns(env_id, observation, bc, HORIZON, gamma)
-    _, data_reward, data_first = rollout_returns(env_id, observation, start["action"], 1, gamma)
+    actor_return = rollout_returns(env_id, observation, actor, HORIZON, gamma)
+    bc_return = rollout_returns(env_id, observation, bc, HORIZON, gamma)
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    try:
+        first = {"actor": step_from_observations(env, observation, actor(observation)),
+                 "data": step_from_observations(env, observation, start["action"])}
+        random_steps = [step_from_observations(env, observation, actions)
+                        for actions in random_actions(run.env.action_spec_unbatched, len(observation))]
+    finally:
+        env.close()
+
+    @torch.no_grad()
+    def reached_value(step) -> torch.Tensor:  # a fall ends the episode: nothing more to come
+        reached, _, terminated = step
+        return torch.where(terminated, 0.0, value(tsidm.encode_state(reached)))
+
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        acted = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))
-        z, proposal = acted[LATENT_KEY], acted[GUIDE_KEY]
-        promised = (value(proposal) - value(tsidm.encode_state(start["next", "observation"]))) / spread
-        data_next_value = value(tsidm.encode_state(data_first))
-        delivered = (value(tsidm.encode_state(actor_first)) - data_next_value) / spread
-        best_random = torch.stack([value(tsidm.encode_state(reached)) - data_next_value for reached in
-                                   random_action_steps(env_id, observation, run.env.action_spec_unbatched)]
-                                  ).amax(0) / spread
+        proposal = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))[GUIDE_KEY]
+        data_next_value = reached_value(first["data"])
+        promised = (value(proposal) - data_next_value) / spread
+        replay_gap = (data_next_value - value(tsidm.encode_state(start["next", "observation"]))) / spread
+        delivered = (reached_value(first["actor"]) - data_next_value) / spread
+        best_random = torch.stack([reached_value(step) - data_next_value for step in random_steps]).amax(0) / spread
+    actor_reward, data_reward = first["actor"][1], first["data"][1]
     data_return = recorded_returns(data, gamma, HORIZON)[rows]
     return {
         "final_score": run.results["final_normalized_score_mean"], "gamma": gamma, "states": len(rows),
@@ -253,7 +271,8 @@ def value_delivery(run_dir: Path) -> dict:
                   "return_to_go_rows": int(rtg_rows.sum()), "spread": spread,
                   "range": [v_data.min().item(), v_data.max().item()],
                   "return_to_go_range": [rtg[rtg_rows].min().item(), rtg[rtg_rows].max().item()]},
-        "promised": {"median": _median(promised), "share_positive": (promised > 0).float().mean().item()},
+        "promised": {"median": _median(promised), "share_positive": (promised > 0).float().mean().item(),
+                     "replay_gap": _median(replay_gap)},
         "delivered": {"median": _median(delivered), "share_positive": (delivered > 0).float().mean().item(),
                       "rank_with_promised": spearman(promised.tolist(), delivered.tolist())},
         "best_random": {"median": _median(best_random), "actions": RANDOM_ACTIONS,
