@@ -296,7 +296,7 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
     records = run_results(RESULTS) if records is None else records
     lines = ["| arm | task | seed | run's score | V rank with return-to-go | V loss: retrained against the run's "
-             "| promised: V(proposal) − V(data's next) | delivered: V(actor's next) − V(data action's next) "
+             "| promised: V(proposal) − V(data action's next) | delivered: V(actor's next) − V(data action's next) "
              f"| best of {RANDOM_ACTIONS} random actions | reward: actor − data action | rank promised, delivered "
              f"| {HORIZON}-step return: actor, BC, data | actor above BC |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
