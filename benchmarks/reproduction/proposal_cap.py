@@ -16,6 +16,7 @@ import json
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Callable
 
 import torch
 import yaml
@@ -24,7 +25,7 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.harness import invocation, machine_description, REPO, repo_relative, skip_existing, write_result
 from benchmarks.reproduction.action_error import training_rows
 from torchrl_tels.checkpoint import load_checkpoint
 from torchrl_tels.data import load_dataset
@@ -34,6 +35,8 @@ from torchrl_tels.modules import load_tels_actor, make_tels_actor, TSIDM
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY, POLICY_FORMAT
 
 EPISODES = 10
+#: What a finished recipe run folder holds that these readings load.
+RUN_FILES = ("config.yaml", "results.json", "tsidm.pt", "policy.pt")
 
 
 class CappedStep(nn.Module):
@@ -79,6 +82,43 @@ def load_finished_run(run_dir: Path, episodes: int = EPISODES) -> FinishedRun:
     return FinishedRun(results, task, data, tsidm, actor, env, data_step, results["seed"] * 100_000 + 1)
 
 
+def check_finished_run(parser: argparse.ArgumentParser, run_dir: Path, required=RUN_FILES) -> None:
+    """Exits through ``parser`` naming the first of ``required`` that ``run_dir`` lacks."""
+    for name in required:
+        if not (run_dir / name).exists():
+            parser.error(f"{run_dir / name} is missing: pass a finished run folder")
+
+
+def reading_main(argv, *, prog: str, description: str, results: Path, read: Callable[[Path], dict],
+                 table: Callable[[], str], summary: Callable[[dict], str], required=RUN_FILES) -> None:
+    """The command line of a reading of finished runs: ``--run-dir``/``--name`` writes
+    ``results/<name>.json`` from ``read(run_dir)`` (skipped if it exists unless ``--force``) and prints
+    ``summary(record)``; ``--table`` prints ``table()``."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
+    parser.add_argument("--name", help=f"results land in {repo_relative(results)}/<name>.json")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
+    parser.add_argument("--table", action="store_true", help="print the table of every reading")
+    args = parser.parse_args(argv)
+    if args.table:
+        print(table())
+        return
+    if args.run_dir is None or args.name is None:
+        parser.error("--run-dir and --name are required (or --table)")
+    check_finished_run(parser, args.run_dir, required)
+    torch.set_num_threads(args.threads)
+    out = results / f"{args.name}.json"
+    if skip_existing(out, args.force):
+        return
+    record = read(args.run_dir)
+    record.update(run_dir=str(args.run_dir), command=invocation(),
+                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  machine={**machine_description(), "threads": args.threads})
+    print(summary(record))
+    write_result(out, record, args.force)
+
+
 def capped_scores(run_dir: Path, caps: list[float]) -> dict:
     run = load_finished_run(run_dir)
     payload = load_checkpoint(run_dir / "policy.pt", POLICY_FORMAT)
@@ -109,9 +149,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if any(cap <= 0 for cap in args.caps):
         parser.error("--caps must be positive")
-    for required in ("config.yaml", "results.json", "tsidm.pt", "policy.pt"):
-        if not (args.run_dir / required).exists():
-            parser.error(f"{args.run_dir / required} is missing: pass a finished run folder")
+    check_finished_run(parser, args.run_dir)
     torch.set_num_threads(args.threads)
     out = REPO / "benchmarks" / "reproduction" / "results" / "proposal_cap" / f"{args.name}.json"
     if skip_existing(out, args.force):

@@ -18,9 +18,7 @@ the same quantity on states the behaviour policy visited. Writes
 """
 from __future__ import annotations
 
-import argparse
 import statistics
-from datetime import datetime, timezone
 from pathlib import Path
 
 import gymnasium as gym
@@ -29,10 +27,10 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.harness import REPO
 from benchmarks.reproduction.heldout_selection import spearman
 from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run
+from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main
 from torchrl_tels.diagnostics import action_chain_statistics, rollout_statistics
 from torchrl_tels.envs import normalized_score, rollout_episodes
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
@@ -185,31 +183,9 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.splitlines()[0])
-    parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
-    parser.add_argument("--name", help="results land in results/realization/<name>.json")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
-    parser.add_argument("--table", action="store_true", help="print the table of every reading")
-    args = parser.parse_args(argv)
-    if args.table:
-        print(table())
-        return
-    if args.run_dir is None or args.name is None:
-        parser.error("--run-dir and --name are required (or --table)")
-    for required in ("config.yaml", "results.json", "tsidm.pt", "policy.pt"):
-        if not (args.run_dir / required).exists():
-            parser.error(f"{args.run_dir / required} is missing: pass a finished run folder")
-    torch.set_num_threads(args.threads)
-    out = RESULTS / f"{args.name}.json"
-    if skip_existing(out, args.force):
-        return
-    record = realization(args.run_dir)
-    record.update(run_dir=str(args.run_dir), command=invocation(),
-                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                  machine={**machine_description(), "threads": args.threads})
-    print(f"score {record['score']:.1f}; realized error ratio {record['rollouts']['realized_error_ratio']:.2f}")
-    write_result(out, record, args.force)
+    reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=realization,
+                 table=table, summary=lambda record: f"score {record['score']:.1f}; realized error ratio "
+                                                      f"{record['rollouts']['realized_error_ratio']:.2f}")
 
 
 if __name__ == "__main__":

@@ -42,13 +42,9 @@ Writes ``benchmarks/reproduction/results/value_delivery/<name>.json`` (skipped i
 """
 from __future__ import annotations
 
-import argparse
-import statistics
-from datetime import datetime, timezone
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 import torch
 import tqdm
 from hydra import compose, initialize_config_dir
@@ -57,11 +53,11 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.value.functional import reward2go
 
-from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
+from benchmarks.harness import REPO
 from benchmarks.reproduction.action_error import train_bc
 from benchmarks.reproduction.heldout_selection import spearman
 from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.proposal_cap import load_finished_run
+from benchmarks.reproduction.proposal_cap import load_finished_run, reading_main, RUN_FILES
 from benchmarks.reproduction.realization import set_state_from_observation, step_from_observations
 from torchrl_tels.modules.actors import GUIDE_KEY
 from torchrl_tels.trainer import autocast, make_data, make_stage2
@@ -227,9 +223,13 @@ def value_delivery(run_dir: Path) -> dict:
     start = data[rows]
     observation = start["observation"]
 
+    @torch.no_grad()
+    def act(observations: torch.Tensor) -> TensorDict:  # the action, and the guide's proposal behind it
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return run.actor(TensorDict({"observation": observations}, batch_size=[len(observations)]))
+
     def actor(observations: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            return run.actor(TensorDict({"observation": observations}, batch_size=[len(observations)]))["action"]
+        return act(observations)["action"]
 
     bc_net = train_bc(data["observation"], data["action"], BC_STEPS, seed=int(run.results["seed"]))
 
@@ -243,7 +243,8 @@ def value_delivery(run_dir: Path) -> dict:
     env = gym.make(env_id)
     env.reset(seed=0)
     try:
-        first = {"actor": step_from_observations(env, observation, actor(observation)),
+        acted = act(observation)
+        first = {"actor": step_from_observations(env, observation, acted["action"]),
                  "data": step_from_observations(env, observation, start["action"])}
         random_steps = [step_from_observations(env, observation, actions)
                         for actions in random_actions(run.env.action_spec_unbatched, len(observation))]
@@ -255,8 +256,8 @@ def value_delivery(run_dir: Path) -> dict:
         reached, _, terminated = step
         return torch.where(terminated, 0.0, value(tsidm.encode_state(reached)))
 
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        proposal = run.actor(TensorDict({"observation": observation}, batch_size=[len(observation)]))[GUIDE_KEY]
+    with torch.no_grad():
+        proposal = acted[GUIDE_KEY]
         data_next_value = reached_value(first["data"])
         promised = (value(proposal) - data_next_value) / spread
         replay_gap = (data_next_value - value(tsidm.encode_state(start["next", "observation"]))) / spread
@@ -313,34 +314,15 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.splitlines()[0])
-    parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
-    parser.add_argument("--name", help="results land in results/value_delivery/<name>.json")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
-    parser.add_argument("--table", action="store_true", help="print the table of every reading")
-    args = parser.parse_args(argv)
-    if args.table:
-        print(table())
-        return
-    if args.run_dir is None or args.name is None:
-        parser.error("--run-dir and --name are required (or --table)")
-    for required in ("config.yaml", "results.json", "tsidm.pt", "policy.pt", "state.pt"):
-        if not (args.run_dir / required).exists():
-            parser.error(f"{args.run_dir / required} is missing: pass a finished run folder")
-    torch.set_num_threads(args.threads)
-    out = RESULTS / f"{args.name}.json"
-    if skip_existing(out, args.force):
-        return
-    record = value_delivery(args.run_dir)
-    record.update(run_dir=str(args.run_dir), command=invocation(),
-                  date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                  machine={**machine_description(), "threads": args.threads})
+def _summary(record: dict) -> str:
     h = record["horizon_return"]
-    print(f"promised {record['promised']['median']:+.3f}, delivered {record['delivered']['median']:+.3f}; "
-          f"{HORIZON}-step return actor {h['actor']:.1f}, BC {h['bc']:.1f}, data {h['data']:.1f}")
-    write_result(out, record, args.force)
+    return (f"promised {record['promised']['median']:+.3f}, delivered {record['delivered']['median']:+.3f}; "
+            f"{HORIZON}-step return actor {h['actor']:.1f}, BC {h['bc']:.1f}, data {h['data']:.1f}")
+
+
+def main(argv=None) -> None:
+    reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=value_delivery,
+                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"))
 
 
 if __name__ == "__main__":
