@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -8,6 +10,7 @@ import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_D4RL = REPO_ROOT.parent / "shared" / "datasets" / "d4rl-10k"
+RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
 
 
 def shared_file(name: str) -> Path:
@@ -28,3 +31,17 @@ def hopper_arrays():
 def _seed():
     torch.manual_seed(0)
     np.random.seed(0)
+
+
+@pytest.fixture(scope="session")
+def finished_recipe_run(tmp_path_factory):
+    """A short recipe run on the paper's settings, for the readings of finished runs (``benchmarks.reproduction``).
+
+    Two evaluation episodes: the batched (vector-env) evaluation runs between the value updates."""
+    run_dir = tmp_path_factory.mktemp("finished_recipe_run") / "run"
+    overrides = ["domain=paper", "budget=smoke", "threads=1", "seed=2", "tsidm.beta=1.0", "tsidm.steps=20",
+                 "policy.steps=120", "eval.interval=60", "eval.episodes=2", "eval.max_steps=30",
+                 "logger.log_interval=10", f"run_dir={run_dir}"]
+    proc = subprocess.run([sys.executable, str(RECIPE), *overrides], cwd=REPO_ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return run_dir

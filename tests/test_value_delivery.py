@@ -2,8 +2,6 @@
 against the simulator stepped by hand, and the retrained V against a recipe run's own logged V losses."""
 from __future__ import annotations
 
-import subprocess
-import sys
 
 import gymnasium as gym
 import numpy as np
@@ -15,7 +13,6 @@ from benchmarks.reproduction import realization, value_delivery
 from benchmarks.reproduction.proposal_cap import load_finished_run
 from torchrl_tels.trainer import make_data
 
-from tests.test_resume import RECIPE, REPO_ROOT
 
 
 def _episodes(lengths, terminated=None, seed=0):
@@ -119,47 +116,63 @@ def test_random_actions_are_drawn_inside_the_action_box(monkeypatch):
     torch.testing.assert_close(drawn.mean((0, 1)), (low + high) / 2, atol=0.1 * (high - low).max().item(), rtol=0)
 
 
-@pytest.fixture(scope="module")
-def recipe_run(tmp_path_factory):
-    run_dir = tmp_path_factory.mktemp("value_delivery") / "run"
-    # two evaluation episodes: the batched (vector-env) evaluation runs between the value updates
-    overrides = ["domain=paper", "budget=smoke", "threads=1", "seed=2", "tsidm.beta=1.0", "tsidm.steps=20",
-                 "policy.steps=120", "eval.interval=60", "eval.episodes=2", "eval.max_steps=30",
-                 "logger.log_interval=10", f"run_dir={run_dir}"]
-    proc = subprocess.run([sys.executable, str(RECIPE), *overrides], cwd=REPO_ROOT, capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return run_dir
-
-
-def test_retrained_value_reproduces_the_runs_logged_value_losses(recipe_run):
+def test_retrained_value_reproduces_the_runs_logged_value_losses(finished_recipe_run):
     torch.set_num_threads(1)
-    run = load_finished_run(recipe_run, episodes=1)
-    cfg = value_delivery.run_config(recipe_run)
+    run = load_finished_run(finished_recipe_run, episodes=1)
+    cfg = value_delivery.run_config(finished_recipe_run)
     data, _ = make_data(cfg)
     value, losses, gamma = value_delivery.retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched)
-    match = value_delivery.loss_match(recipe_run, losses)
+    match = value_delivery.loss_match(finished_recipe_run, losses)
     # with one evaluation in between, every logged loss equal: the same batches in the same order
     assert match["steps_compared"] == 12 and match["max_relative_gap"] == 0.0
     assert gamma == cfg.value.gamma
     # a V trained with another seed's batches would not match: the comparison can fail
     shifted = {step: loss * (1 + 1e-4) for step, loss in losses.items()}
-    assert value_delivery.loss_match(recipe_run, shifted)["max_relative_gap"] > 1e-5
+    assert value_delivery.loss_match(finished_recipe_run, shifted)["max_relative_gap"] > 1e-5
     latent = run.tsidm.encode_state(data["observation"][:5])
     assert value(latent).shape == (5,)
 
 
-def test_a_reading_of_a_recipe_run(recipe_run, monkeypatch):
+def test_a_cached_value_is_the_retrained_one_and_a_cache_of_other_steps_is_refused(finished_recipe_run, tmp_path,
+                                                                                   monkeypatch):
+    torch.set_num_threads(1)
+    run = load_finished_run(finished_recipe_run, episodes=1)
+    cfg = value_delivery.run_config(finished_recipe_run)
+    data, _ = make_data(cfg)
+    spec, cache = run.env.action_spec_unbatched, tmp_path / value_delivery.VALUE_CACHE
+    value, losses, _ = value_delivery.retrain_value(cfg, data, run.tsidm, spec, cache)
+    assert cache.exists()
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("V was retrained although a cache exists")
+
+    monkeypatch.setattr(value_delivery.tqdm, "trange", no_training)
+    cached, cached_losses, _ = value_delivery.retrain_value(cfg, data, run.tsidm, spec, cache)
+    latent = run.tsidm.encode_state(data["observation"][:50])
+    assert cached_losses == losses
+    assert torch.equal(cached(latent), value(latent))
+    # the networks V starts from would give other values: the comparison can fail
+    untrained = value_delivery.make_stage2(cfg, data, run.tsidm, spec).value_loss
+    with untrained.value_network_params.to_module(untrained.value_network):
+        start = untrained.value_network(TensorDict({"latent": latent}, [50]))["state_value"].squeeze(-1)
+    assert not torch.allclose(start, value(latent))
+    cfg.policy.steps += 1
+    with pytest.raises(SystemExit, match="value_retrained.pt holds V after 120 steps"):
+        value_delivery.retrain_value(cfg, data, run.tsidm, spec, cache)
+
+
+def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     monkeypatch.setattr(value_delivery, "STATES", 12)
     monkeypatch.setattr(value_delivery, "HORIZON", 5)
     monkeypatch.setattr(value_delivery, "BC_STEPS", 20)
-    record = value_delivery.value_delivery(recipe_run)
+    record = value_delivery.value_delivery(finished_recipe_run)
     assert record["states"] == 12 and record["value_loss_match"]["max_relative_gap"] == 0.0
     for key in ("promised", "delivered", "reward"):
         assert 0.0 <= record[key]["share_positive"] <= 1.0
     assert 0.0 <= record["best_random"]["share_promised_above"] <= 1.0
     horizon = record["horizon_return"]
     # five steps of the data's rewards at most, and the simulator's hopper earns at least its alive bonus
-    most = 5 * load_finished_run(recipe_run, episodes=1).data["next", "reward"].max().item()
+    most = 5 * load_finished_run(finished_recipe_run, episodes=1).data["next", "reward"].max().item()
     assert all(0.0 < horizon[k] <= most for k in ("data", "actor", "bc")), horizon
     text = value_delivery.table({("arm", "task", 0): record})
     assert text.splitlines()[2].startswith("| arm | task | 0 | ")

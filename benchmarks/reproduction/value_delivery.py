@@ -59,6 +59,7 @@ from benchmarks.reproduction.heldout_selection import spearman
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.proposal_cap import load_finished_run, reading_main, RUN_FILES
 from benchmarks.reproduction.realization import set_state_from_observation, step_from_observations
+from torchrl_tels.checkpoint import atomic_save
 from torchrl_tels.modules.actors import GUIDE_KEY
 from torchrl_tels.trainer import autocast, make_data, make_stage2
 from torchrl_tels.training import load_training_state
@@ -73,6 +74,8 @@ BC_STEPS = 5000
 RANDOM_ACTIONS = 16
 #: Gymnasium MuJoCo envs stepped side by side per chunk of start states (memory, not speed).
 CHUNK = 250
+#: Where a run's retrained V is kept, in its run folder.
+VALUE_CACHE = "value_retrained.pt"
 
 
 def episode_ends(data) -> torch.Tensor:
@@ -164,28 +167,50 @@ def random_actions(action_spec, states: int) -> list[torch.Tensor]:
     return [low + (high - low) * torch.rand(states, len(low), generator=generator) for _ in range(RANDOM_ACTIONS)]
 
 
-def retrain_value(cfg, data, tsidm, action_spec):
-    """V trained as the run's stage 2 trained it (see the module docstring), with its logged losses."""
+def retrain_value(cfg, data, tsidm, action_spec, cache: Path | None = None):
+    """V trained as the run's stage 2 trained it (see the module docstring), with its logged losses.
+
+    With ``cache``, a V retrained before for the same steps is loaded from it, and a new one is saved there
+    (:data:`VALUE_CACHE` in the run folder: every reading of a run reads the same V, retrained once)."""
     stage2 = make_stage2(cfg, data, tsidm, action_spec)
-    losses = {}
-    for step in tqdm.trange(cfg.policy.steps, desc="retraining V", mininterval=5.0):
-        with autocast(cfg):
-            value_losses = stage2.value_loss(stage2.buffer.sample())
-        stage2.value_optim.zero_grad()
-        value_losses["loss_value"].backward()
-        stage2.value_optim.step()
-        stage2.target_updater.step()
-        if (step + 1) % cfg.logger.log_interval == 0:
-            losses[step + 1] = value_losses["loss_value"].item()
     value_loss = stage2.value_loss
+    params = value_loss.value_network_params
+    if cache is not None and cache.exists():
+        saved = torch.load(cache, weights_only=True)
+        if saved["steps"] != cfg.policy.steps:
+            raise SystemExit(f"error: {cache} holds V after {saved['steps']} steps, the run trained "
+                             f"{cfg.policy.steps}: delete it to retrain")
+        params.update_(TensorDict(saved["params"], []).unflatten_keys("."))
+        losses = saved["losses"]
+    else:
+        losses = {}
+        for step in tqdm.trange(cfg.policy.steps, desc="retraining V", mininterval=5.0):
+            with autocast(cfg):
+                value_losses = value_loss(stage2.buffer.sample())
+            stage2.value_optim.zero_grad()
+            value_losses["loss_value"].backward()
+            stage2.value_optim.step()
+            stage2.target_updater.step()
+            if (step + 1) % cfg.logger.log_interval == 0:
+                losses[step + 1] = value_losses["loss_value"].item()
+        if cache is not None:
+            atomic_save({"steps": cfg.policy.steps, "losses": losses,
+                         "params": dict(params.data.flatten_keys(".").items())}, cache)
 
     @torch.no_grad()
     def value(latent: torch.Tensor) -> torch.Tensor:
         td = TensorDict({value_loss.value_network.in_keys[0]: latent}, batch_size=latent.shape[:-1])
-        with value_loss.value_network_params.to_module(value_loss.value_network, preserve_module_state=False):
+        with params.to_module(value_loss.value_network, preserve_module_state=False):
             return value_loss.value_network(td)[value_loss.tensor_keys.value].squeeze(-1)
 
     return value, losses, float(cfg.value.gamma)
+
+
+def start_rows(data) -> torch.Tensor:
+    """``STATES`` rows of ``data`` (a fixed draw) where the data's return over ``HORIZON`` steps is known."""
+    remaining, ended = steps_to_end(episode_ends(data)), terminated_episodes(data)
+    eligible = (ended | (remaining >= HORIZON)).nonzero().flatten()
+    return eligible[torch.randperm(len(eligible), generator=torch.Generator().manual_seed(0))[:STATES]]
 
 
 def loss_match(run_dir: Path, losses: dict[int, float]) -> dict[str, float]:
@@ -206,7 +231,7 @@ def value_delivery(run_dir: Path) -> dict:
     run = load_finished_run(run_dir)
     cfg = run_config(run_dir)
     data, _ = make_data(cfg)  # the rows in the trainer's order
-    value, losses, gamma = retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched)
+    value, losses, gamma = retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
     tsidm = run.tsidm
     remaining, ended = steps_to_end(episode_ends(data)), terminated_episodes(data)
     with torch.no_grad():
@@ -217,9 +242,7 @@ def value_delivery(run_dir: Path) -> dict:
     fitted["next", "reward"] = cfg.dataset.reward_scale * data["next", "reward"] + cfg.dataset.reward_bias
     rtg = recorded_returns(fitted, gamma)
     spread = v_data.std().item()
-    # start states: the data's return over the horizon is known there
-    eligible = (ended | (remaining >= HORIZON)).nonzero().flatten()
-    rows = eligible[torch.randperm(len(eligible), generator=torch.Generator().manual_seed(0))[:STATES]]
+    rows = start_rows(data)
     start = data[rows]
     observation = start["observation"]
 

@@ -1,0 +1,223 @@
+"""Can the TS-IDM's own forward model choose, among latent actions near the actor's, one that reaches more value?
+
+    python -m benchmarks.reproduction.model_selection --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m benchmarks.reproduction.model_selection --table
+
+``value_delivery`` found that Eq. (9) reads V at a proposed latent that no action reaches: the promised gain
+is not delivered. The hypothesis here: V read where the TS-IDM's forward model says an action goes delivers.
+Among ``CANDIDATES`` latent actions z_aᵏ = z_a⁰ + σ·εᵏ around the actor's own, z_a⁰ = h_inv(z, π_g(z)) of
+Eq. (11) (k = 0; εᵏ standard normal; σ = ``SCALE`` × the per-dimension std of the data's latent actions
+h_inv(φ(s), φ(s'))), act ψ_a(z_aᵏ) for the k of largest V(z + h_fwd(z, z_aᵏ)), the next latent Eq. (6)'s
+forward model predicts. V is the run's own (``value_delivery.retrain_value``, cached in the run folder).
+
+The hypothesis is refuted if any of these fails:
+
+* ``model_rank``: within a state, the rank correlation over the candidates of V at the predicted next latent
+  with V at the state the simulator reaches from that state with that candidate's action (0 where it falls),
+  the median over ``value_delivery``'s start states. Near 0, the forward model cannot rank the candidates;
+  ``tsym_rank`` is the same for minus Eq. (6)'s consistency error, T-symmetry's own flag of a bad transition;
+* ``chosen``: the reached value of the chosen candidate minus the actor's own (k = 0), over V's spread on the
+  data; against ``best`` (the largest over the candidates: what a perfect ranking would gain) and ``other``
+  (a fixed candidate k = 1: what perturbing alone does), and the model's own promise ``predicted``;
+* ``horizon``: the discounted return over ``HORIZON`` steps from the start states, choosing at every step,
+  against the actor and against choosing at random among the same candidates;
+* ``episodes``: the normalized score over ``EPISODES`` whole evaluation episodes, seeded alike for the
+  actor, the chosen candidate and a random one.
+
+Writes ``benchmarks/reproduction/results/model_selection/<name>.json`` (skipped if it exists unless ``--force``).
+"""
+from __future__ import annotations
+
+import gymnasium as gym
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from benchmarks.harness import REPO
+from benchmarks.reproduction.latent_scale import run_results
+from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main, RUN_FILES
+from benchmarks.reproduction.realization import step_from_observations
+from benchmarks.reproduction.value_delivery import (HORIZON, retrain_value, rollout_returns, run_config,
+                                                    start_rows, VALUE_CACHE)
+from torchrl_tels.envs import evaluate_policy, normalized_score
+from torchrl_tels.modules import TSIDM
+from torchrl_tels.trainer import make_data
+
+RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_selection"
+COMMAND = "python -m benchmarks.reproduction.model_selection"
+CANDIDATES = 16
+SCALE = 0.5
+
+
+def row_spearman(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Per row of two ``(rows, k)`` tensors, the rank correlation across the k columns, tied values sharing
+    their mean rank (candidates that all fall reach the same value, 0); NaN where a row is constant."""
+    def centred_ranks(t):
+        below = (t.unsqueeze(-1) > t.unsqueeze(-2)).sum(-1)
+        tied = (t.unsqueeze(-1) == t.unsqueeze(-2)).sum(-1)
+        ranks = below.double() + (tied.double() - 1) / 2
+        return ranks - ranks.mean(-1, keepdim=True)
+
+    rx, ry = centred_ranks(x), centred_ranks(y)
+    return (rx * ry).sum(-1) / (rx.norm(dim=-1) * ry.norm(dim=-1))
+
+
+class LatentActionChoice(nn.Module):
+    """Observation → action: the actor's latent action of Eq. (11) and ``CANDIDATES - 1`` Gaussian perturbations
+    of it, decoded by ψ_a and clipped like the actor's; ``choose`` picks one per state from the candidates'
+    ``(latent, latent actions, predicted next latents)`` (``"first"``: the actor's own)."""
+
+    def __init__(self, tsidm: TSIDM, guide: nn.Module, head: nn.Module, sigma: torch.Tensor, choose, seed: int = 0):
+        super().__init__()
+        self.tsidm, self.guide, self.head, self.choose = tsidm, guide, head, choose
+        self.register_buffer("sigma", sigma)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    @torch.no_grad()
+    def candidates(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(z, z_a, predicted next latents)``, candidates first: ``(CANDIDATES, states, ·)``."""
+        tsidm = self.tsidm
+        latent = tsidm.encode_state(observation)
+        proposal = self.guide(latent)
+        if self.head.reencode_proposal:
+            proposal = tsidm.embed_state(tsidm.decode_state(proposal))
+        own = tsidm.infer_latent_action(latent, proposal)
+        noise = torch.randn((CANDIDATES - 1, *own.shape), generator=self.generator)
+        latent_actions = torch.cat([own.unsqueeze(0), own + self.sigma * noise.to(own)])
+        latents = latent.expand(CANDIDATES, *latent.shape)
+        return latent, latent_actions, latents + tsidm.latent_forward(latents, latent_actions)
+
+    def actions(self, latent_actions: torch.Tensor) -> torch.Tensor:
+        return self.tsidm.decode_action(latent_actions).clamp(self.head.low, self.head.high)
+
+    @torch.no_grad()
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        latent, latent_actions, predicted = self.candidates(observation)
+        pick = self.choose(latent, latent_actions, predicted)
+        return self.actions(latent_actions[pick, torch.arange(len(pick))])
+
+
+def own_action(latent, latent_actions, predicted):
+    """The actor's own latent action (k = 0): the run's actor, acting through this module."""
+    return torch.zeros(latent.shape[0], dtype=torch.long)
+
+
+def by_value(value):
+    """Choose the candidate of largest V at its predicted next latent."""
+    return lambda latent, latent_actions, predicted: value(predicted).argmax(0)
+
+
+def at_random(seed: int = 1):
+    """Choose a candidate uniformly at random (a fixed stream)."""
+    generator = torch.Generator().manual_seed(seed)
+    return lambda latent, latent_actions, predicted: torch.randint(CANDIDATES, (latent.shape[0],), generator=generator)
+
+
+def _summary_of(x: torch.Tensor) -> dict:
+    return {"median": x.median().item(), "mean": x.mean().item(), "share_positive": (x > 0).float().mean().item()}
+
+
+def model_selection(run_dir) -> dict:
+    run = load_finished_run(run_dir, episodes=EPISODES)
+    cfg = run_config(run_dir)
+    data, _ = make_data(cfg)  # the rows in the trainer's order
+    tsidm = run.tsidm
+    value, _, gamma = retrain_value(cfg, data, tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
+    guide, head = run.actor[1].module, run.actor[-1].module
+    if head.inverse_dropout:
+        raise SystemExit(f"error: {run_dir} acts with h_inv's dropout on: its latent action is not one number")
+    with torch.no_grad():
+        latent = tsidm.encode_state(data["observation"])
+        spread = value(latent).std().item()
+        data_latent_actions = tsidm.infer_latent_action(latent, tsidm.encode_state(data["next", "observation"]))
+    sigma = SCALE * data_latent_actions.std(0)
+
+    def policy(choose, seed=0):
+        return LatentActionChoice(tsidm, guide, head, sigma, choose, seed=seed)
+
+    rows = start_rows(data)
+    observation = data[rows]["observation"]
+    chooser = policy(own_action)
+    _, latent_actions, predicted = chooser.candidates(observation)
+    with torch.no_grad():
+        predicted_value = value(predicted)
+        consistency = tsidm.tsym_consistency(tsidm.encode_state(observation).expand(CANDIDATES, -1, -1),
+                                             latent_actions, cfg.tsidm.dim_reduction)
+    env = gym.make(run.task.env_id)
+    env.reset(seed=0)
+    try:
+        reached = []  # V at the state each candidate's action reaches, 0 where it falls
+        for k in range(CANDIDATES):
+            next_observation, _, terminated = step_from_observations(env, observation,
+                                                                     chooser.actions(latent_actions[k]))
+            with torch.no_grad():
+                reached.append(torch.where(terminated, 0.0, value(tsidm.encode_state(next_observation))))
+    finally:
+        env.close()
+    reached = torch.stack(reached)  # (candidates, states)
+    chosen = predicted_value.argmax(0)
+    states = torch.arange(len(rows))
+    gain = lambda x: (x - reached[0]) / spread
+    model_rank = row_spearman(predicted_value.T, reached.T)
+    tsym_rank = row_spearman(-consistency.T, reached.T)
+
+    choices = {"actor": own_action, "chosen": by_value(value), "random": at_random()}
+    horizon = {name: rollout_returns(run.task.env_id, observation, policy(choose), HORIZON, gamma)
+               for name, choose in choices.items()}
+    episodes = {}
+    for name, choose in choices.items():
+        module = TensorDictModule(policy(choose), in_keys=["observation"], out_keys=["action"])
+        returns = evaluate_policy(module, run.env, EPISODES, seed=run.seed)
+        episodes[name] = float(normalized_score(run.task, torch.tensor(returns)).mean())
+    return {
+        "final_score": run.results["final_normalized_score_mean"], "gamma": gamma, "states": len(rows),
+        "candidates": CANDIDATES, "scale": SCALE, "value_spread": spread,
+        "model_rank": {"median": model_rank.nanmedian().item(), "rows": int(model_rank.isfinite().sum())},
+        "tsym_rank": {"median": tsym_rank.nanmedian().item(), "rows": int(tsym_rank.isfinite().sum())},
+        "predicted": _summary_of((predicted_value[chosen, states] - predicted_value[0]) / spread),
+        "chosen": _summary_of(gain(reached[chosen, states])),
+        "best": _summary_of(gain(reached.amax(0))),
+        "other": _summary_of(gain(reached[1])),
+        "horizon_return": {name: returns.median().item() for name, returns in horizon.items()}
+        | {"chosen_over_actor": (horizon["chosen"] > horizon["actor"]).float().mean().item(),
+           "random_over_actor": (horizon["random"] > horizon["actor"]).float().mean().item()},
+        "episodes": {"count": EPISODES, "scores": episodes},
+    }
+
+
+def _cell(summary: dict) -> str:
+    return f"{summary['median']:+.3f} ({summary['share_positive']:.0%})"
+
+
+def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
+    """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
+    records = run_results(RESULTS) if records is None else records
+    lines = ["| arm | task | seed | run's score | model rank | T-symmetry rank | predicted gain of the chosen "
+             "| reached gain: chosen | best candidate | other candidate "
+             f"| {HORIZON}-step return: actor, chosen, random | chosen above actor "
+             f"| {EPISODES} episodes: actor, chosen, random |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for (arm, task, seed), r in sorted(records.items()):
+        h, e = r["horizon_return"], r["episodes"]["scores"]
+        lines.append(
+            f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['model_rank']['median']:.2f} "
+            f"| {r['tsym_rank']['median']:.2f} | {_cell(r['predicted'])} | {_cell(r['chosen'])} "
+            f"| {_cell(r['best'])} | {_cell(r['other'])} | {h['actor']:.1f}, {h['chosen']:.1f}, {h['random']:.1f} "
+            f"| {h['chosen_over_actor']:.0%} | {e['actor']:.1f}, {e['chosen']:.1f}, {e['random']:.1f} |")
+    return "\n".join(lines)
+
+
+def _summary(record: dict) -> str:
+    e = record["episodes"]["scores"]
+    return (f"model rank {record['model_rank']['median']:.2f}, reached gain chosen "
+            f"{record['chosen']['median']:+.3f} (best {record['best']['median']:+.3f}); episodes actor "
+            f"{e['actor']:.1f}, chosen {e['chosen']:.1f}, random {e['random']:.1f}")
+
+
+def main(argv=None) -> None:
+    reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=model_selection,
+                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""``benchmarks.reproduction.model_selection``: the per-state rank correlation against the textbook formula,
+the candidates and the choice against a loop over the TS-IDM's maps by hand, and the own-candidate policy
+against the run's actor, action for action and score for score."""
+from __future__ import annotations
+
+import pytest
+import scipy.stats
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from benchmarks.reproduction import model_selection
+from benchmarks.reproduction.proposal_cap import load_finished_run
+from torchrl_tels.envs import evaluate_policy, normalized_score
+from torchrl_tels.modules import make_tels_actor
+
+
+def _textbook_spearman(x: list[float], y: list[float]) -> float:
+    """1 − 6 Σ d² / (n (n² − 1)), ranks by sorting (no ties)."""
+    n = len(x)
+    rank = lambda v: {i: r for r, i in enumerate(sorted(range(n), key=v.__getitem__))}
+    rx, ry = rank(x), rank(y)
+    return 1 - 6 * sum((rx[i] - ry[i]) ** 2 for i in range(n)) / (n * (n * n - 1))
+
+
+def test_row_spearman_matches_the_textbook_formula_row_by_row():
+    generator = torch.Generator().manual_seed(0)
+    x = torch.randn(6, 16, generator=generator)
+    y = x + torch.randn(6, 16, generator=generator) * torch.linspace(0.1, 5, 6).unsqueeze(-1)
+    got = model_selection.row_spearman(x, y)
+    expected = torch.tensor([_textbook_spearman(a.tolist(), b.tolist()) for a, b in zip(x, y)], dtype=got.dtype)
+    torch.testing.assert_close(got, expected)
+    assert got[0] > 0.9 and torch.isnan(model_selection.row_spearman(x, torch.ones(6, 16))).all()
+
+
+def test_row_spearman_gives_tied_values_their_mean_rank():
+    generator = torch.Generator().manual_seed(1)
+    x = torch.randn(5, 16, generator=generator)
+    y = torch.where(x < 0, 0.0, x + torch.randn(5, 16, generator=generator))  # ties: the candidates that fell
+    got = model_selection.row_spearman(x, y)
+    expected = torch.tensor([scipy.stats.spearmanr(a, b).statistic for a, b in zip(x.numpy(), y.numpy())])
+    torch.testing.assert_close(got, expected.to(got.dtype))
+
+
+@pytest.fixture
+def finished_run(finished_recipe_run):
+    torch.set_num_threads(1)
+    return load_finished_run(finished_recipe_run, episodes=2)
+
+
+def _choice(run, choose, reencode_proposal=False, seed=0):
+    actor = make_tels_actor(run.tsidm, run.actor[1], run.env.action_spec_unbatched,
+                            reencode_proposal=reencode_proposal)
+    sigma = torch.full((run.data["action"].shape[-1],), 0.3)
+    return actor, model_selection.LatentActionChoice(run.tsidm, run.actor[1].module, actor[-1].module, sigma,
+                                                     choose, seed=seed)
+
+
+@pytest.mark.parametrize("reencode_proposal", [False, True])
+def test_the_own_candidate_is_the_actors_action(finished_run, reencode_proposal):
+    actor, choice = _choice(finished_run, model_selection.own_action, reencode_proposal)
+    observation = finished_run.data["observation"][:40]
+    with torch.no_grad():
+        expected = actor(TensorDict({"observation": observation}, [40]))["action"]
+    torch.testing.assert_close(choice(observation), expected)
+
+
+def test_candidates_perturb_the_latent_action_by_sigma_and_predict_by_the_forward_model(finished_run):
+    tsidm = finished_run.tsidm
+    _, choice = _choice(finished_run, model_selection.own_action)
+    observation = finished_run.data["observation"][:500]
+    latent, latent_actions, predicted = choice.candidates(observation)
+    assert latent_actions.shape == (model_selection.CANDIDATES, 500, latent_actions.shape[-1])
+    noise = latent_actions[1:] - latent_actions[0]
+    torch.testing.assert_close(noise.std((0, 1)), choice.sigma, rtol=0.05, atol=0)
+    with torch.no_grad():
+        for k in (0, 7):
+            by_hand = latent + tsidm.forward_dynamics(latent, latent_actions[k])
+            torch.testing.assert_close(predicted[k], by_hand)
+
+
+def test_choosing_by_value_acts_the_candidate_of_largest_value_at_its_predicted_next_latent(finished_run):
+    tsidm = finished_run.tsidm
+    direction = torch.randn(tsidm.latent_state_dim, generator=torch.Generator().manual_seed(3))
+    value = lambda latent: latent @ direction
+    _, choice = _choice(finished_run, model_selection.by_value(value), seed=5)
+    _, twin = _choice(finished_run, model_selection.own_action, seed=5)  # the same candidates
+    observation = finished_run.data["observation"][:30]
+    acted = choice(observation)
+    _, latent_actions, predicted = twin.candidates(observation)
+    expected = []
+    for state in range(30):
+        scores = [float(predicted[k, state] @ direction) for k in range(model_selection.CANDIDATES)]
+        best = max(range(len(scores)), key=scores.__getitem__)
+        expected.append(twin.actions(latent_actions[best, state]))
+    torch.testing.assert_close(acted, torch.stack(expected))
+    assert not torch.allclose(acted, twin.actions(latent_actions[0]))  # the choice is not the actor's own
+
+
+def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
+    monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
+    monkeypatch.setattr(model_selection, "HORIZON", 5)
+    monkeypatch.setattr(model_selection, "EPISODES", 2)
+    record = model_selection.model_selection(finished_recipe_run)
+    assert record["states"] == 12 and record["candidates"] == model_selection.CANDIDATES
+    for key in ("model_rank", "tsym_rank"):
+        assert -1.0 <= record[key]["median"] <= 1.0 and 0 < record[key]["rows"] <= 12
+    # the best candidate is at least the chosen one, the actor's own (gain 0) included
+    assert record["best"]["median"] >= max(record["chosen"]["median"], record["other"]["median"], 0.0)
+    # acting through the candidates' own (k = 0) is the run's actor: its score, episode for episode
+    run = load_finished_run(finished_recipe_run, episodes=2)
+    returns = evaluate_policy(run.actor, run.env, 2, seed=run.seed)
+    expected = float(normalized_score(run.task, torch.tensor(returns)).mean())
+    assert record["episodes"]["scores"]["actor"] == pytest.approx(expected, rel=1e-6)
+    text = model_selection.table({("arm", "task", 0): record})
+    assert text.splitlines()[2].startswith("| arm | task | 0 | ")
