@@ -101,10 +101,15 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
     monkeypatch.setattr(model_selection, "HORIZON", 5)
     monkeypatch.setattr(model_selection, "EPISODES", 2)
+    monkeypatch.setattr(model_selection, "LOCAL_STATES", 12)
     record = model_selection.model_selection(finished_recipe_run)
     assert record["states"] == 12 and record["candidates"] == model_selection.CANDIDATES
     for key in ("model_rank", "tsym_rank"):
         assert -1.0 <= record[key]["median"] <= 1.0 and 0 < record[key]["rows"] <= 12
+    # each candidate's first step, then the actor: the actor's own candidate's is the actor's rollout
+    local = record["local"]
+    assert local["states"] == 12 and local["actor_return"] == pytest.approx(record["horizon_return"]["actor"])
+    assert all(-1.0 <= local[key] <= 1.0 for key in ("value_rank", "model_rank"))
     # the best candidate is at least the chosen one, the actor's own (gain 0) included
     assert record["best"]["median"] >= max(record["chosen"]["median"], record["other"]["median"], 0.0)
     # acting through the candidates' own (k = 0) is the run's actor: its score, episode for episode

@@ -67,7 +67,8 @@ def _hopper_states(count=5):
     return env, torch.as_tensor(np.array(starts))
 
 
-def test_rollouts_from_data_states_match_the_simulator_stepped_by_hand(monkeypatch):
+@pytest.mark.parametrize("given_first", [False, True])
+def test_rollouts_from_data_states_match_the_simulator_stepped_by_hand(monkeypatch, given_first):
     monkeypatch.setattr(value_delivery, "CHUNK", 2)  # three chunks of envs
     env, starts = _hopper_states()
 
@@ -75,13 +76,15 @@ def test_rollouts_from_data_states_match_the_simulator_stepped_by_hand(monkeypat
         return torch.tanh(3 * observations[:, 2:5]).clamp(-1, 1)
 
     horizon, gamma = 60, 0.95
-    returns = value_delivery.rollout_returns("Hopper-v4", starts, policy, horizon, gamma)
+    first = torch.linspace(-1, 1, 15).reshape(5, 3).to(starts.dtype) if given_first else None
+    returns = value_delivery.rollout_returns("Hopper-v4", starts, policy, horizon, gamma, first_actions=first)
     falls = 0
-    for start, got in zip(starts.numpy(), returns.tolist()):
+    for row, (start, got) in enumerate(zip(starts.numpy(), returns.tolist())):
         realization.set_state_from_observation(env, start)
         observation, expected = start, 0.0
         for k in range(horizon):
-            observation, reward, terminated, _, _ = env.step(policy(torch.as_tensor(observation[None]))[0].numpy())
+            action = policy(torch.as_tensor(observation[None]))[0] if first is None or k else first[row]
+            observation, reward, terminated, _, _ = env.step(action.numpy())
             expected += gamma ** k * reward
             if terminated:
                 falls += 1

@@ -19,6 +19,13 @@ The hypothesis is refuted if any of these fails:
 * ``chosen``: the reached value of the chosen candidate minus the actor's own (k = 0), over V's spread on the
   data; against ``best`` (the largest over the candidates: what a perfect ranking would gain) and ``other``
   (a fixed candidate k = 1: what perturbing alone does), and the model's own promise ``predicted``;
+* ``local``: does V order one step's alternatives by the return that follows them? From the first
+  ``LOCAL_STATES`` start states, each candidate's action first, then the actor for ``HORIZON`` - 1 steps: within a
+  state, the rank correlation over the candidates of this discounted return with V at the state the first step
+  reached (``value_rank``) and with V at the predicted next latent (``model_rank``), and the return of the
+  chosen candidate's first step minus the actor's own (``chosen_gain``). V ranks the data's states by their
+  return-to-go across episodes (``value_delivery``); near 0 here, it cannot tell one step's alternatives apart,
+  and no choice by V, of a proposal or of an action, can deliver;
 * ``horizon``: the discounted return over ``HORIZON`` steps from the start states, choosing at every step,
   against the actor and against choosing at random among the same candidates;
 * ``episodes``: the normalized score over ``EPISODES`` whole evaluation episodes, seeded alike for the
@@ -47,6 +54,7 @@ RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_selection"
 COMMAND = "python -m benchmarks.reproduction.model_selection"
 CANDIDATES = 16
 SCALE = 0.5
+LOCAL_STATES = 200
 
 
 def row_spearman(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -161,6 +169,12 @@ def model_selection(run_dir) -> dict:
     model_rank = row_spearman(predicted_value.T, reached.T)
     tsym_rank = row_spearman(-consistency.T, reached.T)
 
+    local = torch.arange(min(LOCAL_STATES, len(rows)))
+    first_actions = torch.stack([chooser.actions(latent_actions[k, local]) for k in range(CANDIDATES)])
+    after = rollout_returns(run.task.env_id, observation[local].repeat(CANDIDATES, 1), policy(own_action), HORIZON,
+                            gamma, first_actions=first_actions.flatten(0, 1)).reshape(CANDIDATES, len(local))
+    local_gain = after[chosen[local], local] - after[0]
+
     choices = {"actor": own_action, "chosen": by_value(value), "random": at_random()}
     horizon = {name: rollout_returns(run.task.env_id, observation, policy(choose), HORIZON, gamma)
                for name, choose in choices.items()}
@@ -178,6 +192,9 @@ def model_selection(run_dir) -> dict:
         "chosen": _summary_of(gain(reached[chosen, states])),
         "best": _summary_of(gain(reached.amax(0))),
         "other": _summary_of(gain(reached[1])),
+        "local": {"states": len(local), "value_rank": row_spearman(reached[:, local].T, after.T).nanmedian().item(),
+                  "model_rank": row_spearman(predicted_value[:, local].T, after.T).nanmedian().item(),
+                  "actor_return": after[0].median().item(), "chosen_gain": _summary_of(local_gain)},
         "horizon_return": {name: returns.median().item() for name, returns in horizon.items()}
         | {"chosen_over_actor": (horizon["chosen"] > horizon["actor"]).float().mean().item(),
            "random_over_actor": (horizon["random"] > horizon["actor"]).float().mean().item()},
@@ -189,20 +206,26 @@ def _cell(summary: dict) -> str:
     return f"{summary['median']:+.3f} ({summary['share_positive']:.0%})"
 
 
+def _local_ranks(local: dict | None) -> str:
+    return "—" if local is None else f"{local['value_rank']:.2f}, {local['model_rank']:.2f}"
+
+
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
     records = run_results(RESULTS) if records is None else records
     lines = ["| arm | task | seed | run's score | model rank | T-symmetry rank | predicted gain of the chosen "
              "| reached gain: chosen | best candidate | other candidate "
+             f"| local: V rank, model rank with the return after | local: return gain of the chosen first step "
              f"| {HORIZON}-step return: actor, chosen, random | chosen above actor "
              f"| {EPISODES} episodes: actor, chosen, random |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for (arm, task, seed), r in sorted(records.items()):
-        h, e = r["horizon_return"], r["episodes"]["scores"]
+        h, e, local = r["horizon_return"], r["episodes"]["scores"], r.get("local")
         lines.append(
             f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['model_rank']['median']:.2f} "
             f"| {r['tsym_rank']['median']:.2f} | {_cell(r['predicted'])} | {_cell(r['chosen'])} "
-            f"| {_cell(r['best'])} | {_cell(r['other'])} | {h['actor']:.1f}, {h['chosen']:.1f}, {h['random']:.1f} "
+            f"| {_cell(r['best'])} | {_cell(r['other'])} | {_local_ranks(local)} "
+            f"| {'—' if local is None else _cell(local['chosen_gain'])} | {h['actor']:.1f}, {h['chosen']:.1f}, {h['random']:.1f} "
             f"| {h['chosen_over_actor']:.0%} | {e['actor']:.1f}, {e['chosen']:.1f}, {e['random']:.1f} |")
     return "\n".join(lines)
 

@@ -6,7 +6,7 @@
 RESULTS.md is the one place the study's numbers are published: every arm on every task (seeds,
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
---report``, ``heldout_selection --table``, ``realization --table`` and ``value_delivery --table``, each under the command that prints it alone.
+--report``, ``heldout_selection --table``, ``realization --table``, ``value_delivery --table`` and ``model_selection --table``, each under the command that prints it alone.
 Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
 it is generated and is not edited by hand.
 """
@@ -19,8 +19,8 @@ import statistics
 import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
-from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale, realization,
-                                     summary, value_delivery)
+from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale,
+                                     model_selection, realization, summary, value_delivery)
 
 RESULTS = summary.HERE / "results"
 OUT = summary.HERE / "RESULTS.md"
@@ -155,6 +155,7 @@ def render() -> str:
         *heldout_section(),
         *realization_section(),
         *value_delivery_section(),
+        *model_selection_section(),
     ])
 
 
@@ -203,6 +204,23 @@ def value_delivery_section() -> list[str]:
         "the actor, for BC fitted to the same transitions, and the data's own recorded return; actor above BC:",
         "the share of states. Arm `long20k`: the preset at 3k TS-IDM + 20k policy steps; arm `reach1`: the preset",
         "with `guide.reach_weight=1` at the shared budget (`results/reach1`).",
+    ])
+
+
+def model_selection_section() -> list[str]:
+    ms = model_selection
+    return reading_section(ms, "Can the TS-IDM's forward model choose an action that delivers?", [
+        f"`{ms.COMMAND} --table`: the same finished runs and V as above, from the same start states. Candidates:",
+        f"the actor's latent action h_inv(z, π_g(z)) and {ms.CANDIDATES - 1} Gaussian perturbations of it",
+        f"({ms.SCALE} × the data's latent-action std per dimension). Model rank: within a state, the rank",
+        "correlation over the candidates of V at the forward model's predicted next latent z + h_fwd(z, z_a) with",
+        "V at the state the simulator reaches with the candidate's action (0 on a fall), median over states;",
+        "T-symmetry rank: the same for minus Eq. (6)'s consistency error. Gains: V at the reached state minus V at",
+        "the state the actor's own action reaches, over V's standard deviation on the data, medians (share above",
+        "0): for the candidate of largest predicted V (\"chosen\", with the model's own predicted gain), for the best",
+        f"candidate in hindsight, and for one fixed other candidate. {value_delivery.HORIZON}-step return: discounted,",
+        "medians, acting at every step with the actor's own candidate, the chosen one, or one at random.",
+        f"Episodes: the normalized score over {ms.EPISODES} evaluation episodes seeded alike for the three.",
     ])
 
 

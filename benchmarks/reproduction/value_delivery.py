@@ -119,9 +119,11 @@ def recorded_returns(data, gamma: float, horizon: int | None = None) -> torch.Te
     return total
 
 
-def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: int, gamma: float) -> torch.Tensor:
+def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: int, gamma: float,
+                    first_actions: torch.Tensor | None = None) -> torch.Tensor:
     """From each observation's state (:func:`set_state_from_observation`), ``horizon`` steps of ``policy``
-    (a batch of observations → actions), each episode stopped where it terminates: the discounted returns."""
+    (a batch of observations → actions), each episode stopped where it terminates: the discounted returns.
+    With ``first_actions`` (one per observation), the first step takes those instead of the policy's."""
     returns = []
     for start in range(0, len(observations), CHUNK):
         chunk = observations[start:start + CHUNK]
@@ -133,7 +135,8 @@ def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: in
             current, total = chunk.clone(), torch.zeros(len(chunk), dtype=torch.float64)
             alive = torch.ones(len(chunk), dtype=torch.bool)
             for k in range(horizon):
-                actions = policy(current).numpy()
+                given = first_actions is not None and k == 0
+                actions = (first_actions[start:start + CHUNK] if given else policy(current)).numpy()
                 for i in alive.nonzero().flatten().tolist():
                     observation, reward, terminated, _, _ = envs[i].step(actions[i])
                     total[i] += gamma ** k * reward
