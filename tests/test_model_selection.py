@@ -102,6 +102,7 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     monkeypatch.setattr(model_selection, "HORIZON", 5)
     monkeypatch.setattr(model_selection, "EPISODES", 2)
     monkeypatch.setattr(model_selection, "LOCAL_STATES", 12)
+    monkeypatch.setattr(model_selection, "NUDGE", 0.0)  # the repeat is then the same rollout
     record = model_selection.model_selection(finished_recipe_run)
     assert record["states"] == 12 and record["candidates"] == model_selection.CANDIDATES
     for key in ("model_rank", "tsym_rank"):
@@ -110,6 +111,7 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     local = record["local"]
     assert local["states"] == 12 and local["actor_return"] == pytest.approx(record["horizon_return"]["actor"])
     assert all(-1.0 <= local[key] <= 1.0 for key in ("value_rank", "model_rank"))
+    assert local["repeat_rank"] == pytest.approx(1.0)  # the simulator restarted from a state is deterministic
     # the best candidate is at least the chosen one, the actor's own (gain 0) included
     assert record["best"]["median"] >= max(record["chosen"]["median"], record["other"]["median"], 0.0)
     # acting through the candidates' own (k = 0) is the run's actor: its score, episode for episode

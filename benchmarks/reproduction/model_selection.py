@@ -25,7 +25,10 @@ The hypothesis is refuted if any of these fails:
   reached (``value_rank``) and with V at the predicted next latent (``model_rank``), and the return of the
   chosen candidate's first step minus the actor's own (``chosen_gain``). V ranks the data's states by their
   return-to-go across episodes (``value_delivery``); near 0 here, it cannot tell one step's alternatives apart,
-  and no choice by V, of a proposal or of an action, can deliver;
+  and no choice by V, of a proposal or of an action, can deliver. How far the return that follows is
+  predictable at all: ``repeat_rank``, the same rank correlation of the returns with those after first actions
+  nudged by ``NUDGE`` (in the action box's half-widths, a fixed random sign per dimension), the ceiling of any
+  ranking where small differences in the first step grow into large ones later;
 * ``horizon``: the discounted return over ``HORIZON`` steps from the start states, choosing at every step,
   against the actor and against choosing at random among the same candidates;
 * ``episodes``: the normalized score over ``EPISODES`` whole evaluation episodes, seeded alike for the
@@ -55,6 +58,7 @@ COMMAND = "python -m benchmarks.reproduction.model_selection"
 CANDIDATES = 16
 SCALE = 0.5
 LOCAL_STATES = 200
+NUDGE = 0.01
 
 
 def row_spearman(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -174,6 +178,11 @@ def model_selection(run_dir) -> dict:
     after = rollout_returns(run.task.env_id, observation[local].repeat(CANDIDATES, 1), policy(own_action), HORIZON,
                             gamma, first_actions=first_actions.flatten(0, 1)).reshape(CANDIDATES, len(local))
     local_gain = after[chosen[local], local] - after[0]
+    half_width = (head.high - head.low) / 2
+    signs = torch.randint(2, first_actions.shape, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    nudged = (first_actions + NUDGE * half_width * signs).clamp(head.low, head.high)
+    after_nudged = rollout_returns(run.task.env_id, observation[local].repeat(CANDIDATES, 1), policy(own_action),
+                                   HORIZON, gamma, first_actions=nudged.flatten(0, 1)).reshape(CANDIDATES, len(local))
 
     choices = {"actor": own_action, "chosen": by_value(value), "random": at_random()}
     horizon = {name: rollout_returns(run.task.env_id, observation, policy(choose), HORIZON, gamma)
@@ -194,6 +203,7 @@ def model_selection(run_dir) -> dict:
         "other": _summary_of(gain(reached[1])),
         "local": {"states": len(local), "value_rank": row_spearman(reached[:, local].T, after.T).nanmedian().item(),
                   "model_rank": row_spearman(predicted_value[:, local].T, after.T).nanmedian().item(),
+                  "repeat_rank": row_spearman(after_nudged.T, after.T).nanmedian().item(), "nudge": NUDGE,
                   "actor_return": after[0].median().item(), "chosen_gain": _summary_of(local_gain)},
         "horizon_return": {name: returns.median().item() for name, returns in horizon.items()}
         | {"chosen_over_actor": (horizon["chosen"] > horizon["actor"]).float().mean().item(),
@@ -207,7 +217,10 @@ def _cell(summary: dict) -> str:
 
 
 def _local_ranks(local: dict | None) -> str:
-    return "—" if local is None else f"{local['value_rank']:.2f}, {local['model_rank']:.2f}"
+    if local is None:
+        return "—"
+    ceiling = f", {local['repeat_rank']:.2f}" if "repeat_rank" in local else ""
+    return f"{local['value_rank']:.2f}, {local['model_rank']:.2f}{ceiling}"
 
 
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
@@ -215,7 +228,7 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     records = run_results(RESULTS) if records is None else records
     lines = ["| arm | task | seed | run's score | model rank | T-symmetry rank | predicted gain of the chosen "
              "| reached gain: chosen | best candidate | other candidate "
-             f"| local: V rank, model rank with the return after | local: return gain of the chosen first step "
+             f"| local: V rank, model rank with the return after (nudged repeat) | local: return gain of the chosen first step "
              f"| {HORIZON}-step return: actor, chosen, random | chosen above actor "
              f"| {EPISODES} episodes: actor, chosen, random |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
