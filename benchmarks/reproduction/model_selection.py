@@ -22,7 +22,8 @@ The hypothesis is refuted if any of these fails:
 * ``local``: does V order one step's alternatives by the return that follows them? From the first
   ``LOCAL_STATES`` start states, each candidate's action first, then the actor for ``HORIZON`` - 1 steps: within a
   state, the rank correlation over the candidates of this discounted return with V at the state the first step
-  reached (``value_rank``) and with V at the predicted next latent (``model_rank``), and the return of the
+  reached (``value_rank``), with V at the predicted next latent (``model_rank``), with the first step's reward
+  (``reward_rank``) and with the one-step target r + γ·V(s') (``reward_and_value_rank``), and the return of the
   chosen candidate's first step minus the actor's own (``chosen_gain``). V ranks the data's states by their
   return-to-go across episodes (``value_delivery``); near 0 here, it cannot tell one step's alternatives apart,
   and no choice by V, of a proposal or of an action, can deliver. How far the return that follows is
@@ -158,15 +159,16 @@ def model_selection(run_dir) -> dict:
     env = gym.make(run.task.env_id)
     env.reset(seed=0)
     try:
-        reached = []  # V at the state each candidate's action reaches, 0 where it falls
+        reached, rewards = [], []  # V at the state each candidate's action reaches (0 where it falls), reward
         for k in range(CANDIDATES):
-            next_observation, _, terminated = step_from_observations(env, observation,
-                                                                     chooser.actions(latent_actions[k]))
+            next_observation, reward, terminated = step_from_observations(env, observation,
+                                                                          chooser.actions(latent_actions[k]))
             with torch.no_grad():
                 reached.append(torch.where(terminated, 0.0, value(tsidm.encode_state(next_observation))))
+            rewards.append(cfg.dataset.reward_scale * reward.float() + cfg.dataset.reward_bias)  # V's units
     finally:
         env.close()
-    reached = torch.stack(reached)  # (candidates, states)
+    reached, rewards = torch.stack(reached), torch.stack(rewards)  # (candidates, states)
     chosen = predicted_value.argmax(0)
     states = torch.arange(len(rows))
     gain = lambda x: (x - reached[0]) / spread
@@ -203,6 +205,9 @@ def model_selection(run_dir) -> dict:
         "other": _summary_of(gain(reached[1])),
         "local": {"states": len(local), "value_rank": row_spearman(reached[:, local].T, after.T).nanmedian().item(),
                   "model_rank": row_spearman(predicted_value[:, local].T, after.T).nanmedian().item(),
+                  "reward_rank": row_spearman(rewards[:, local].T, after.T).nanmedian().item(),
+                  "reward_and_value_rank": row_spearman((rewards + gamma * reached)[:, local].T,
+                                                        after.T).nanmedian().item(),
                   "repeat_rank": row_spearman(after_nudged.T, after.T).nanmedian().item(), "nudge": NUDGE,
                   "actor_return": after[0].median().item(), "chosen_gain": _summary_of(local_gain)},
         "horizon_return": {name: returns.median().item() for name, returns in horizon.items()}
