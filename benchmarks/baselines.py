@@ -228,7 +228,7 @@ def _build_iql(obs_key, obs_dim, action_spec, hp):
         target.step()
         return losses
 
-    return actor, update
+    return actor, update, loss
 
 
 def _build_td3bc(obs_key, obs_dim, action_spec, hp):
@@ -259,7 +259,7 @@ def _build_td3bc(obs_key, obs_dim, action_spec, hp):
             target.step()
         return TensorDict(losses, [])
 
-    return actor, update
+    return actor, update, loss
 
 
 def _build_bc(obs_key, obs_dim, action_spec, hp):
@@ -274,7 +274,7 @@ def _build_bc(obs_key, obs_dim, action_spec, hp):
         optim.step()
         return losses
 
-    return actor, update
+    return actor, update, loss
 
 
 _BUILDERS = {"iql": _build_iql, "iql_latent": _build_iql, "td3bc": _build_td3bc, "bc": _build_bc}
@@ -300,7 +300,8 @@ def train_baseline(
     log_fn: Callable[[Mapping[str, float], int], None] | None = None,
     progress: bool = True,
     return_policy: bool = False,
-) -> dict | tuple[dict, TensorDictModuleBase, EnvBase]:
+    return_loss: bool = False,
+) -> dict | tuple:
     """Trains one TorchRL baseline on ``dataset`` for ``steps`` gradient steps and evaluates it.
 
     Args:
@@ -328,6 +329,7 @@ def train_baseline(
         log_fn: called with ``({"eval/normalized_score": ..., ...}, step)`` after each evaluation.
         progress: print one line per evaluation.
         return_policy: also return the trained actor and the evaluation env
+        return_loss: also return the trained loss module (with its networks' parameters)
             (with the observation transforms the actor expects).
 
     Returns:
@@ -335,7 +337,8 @@ def train_baseline(
         (over the last ``eval_last_n`` evaluations), ``evaluations``, ``wall_time_s``,
         ``steps_per_s`` (``policy_excluding_eval`` leaves evaluation out), the
         hyperparameters and the budget; for IQL, ``reward_scale_applied``, the factor
-        ``reward_scale`` came to. With ``return_policy``, ``(results, actor, env)``.
+        ``reward_scale`` came to. With ``return_policy``, ``(results, actor, env)``; ``return_loss`` appends
+        the trained loss module (its critics, for readings of IQL's Q or V).
     """
     if method not in _BUILDERS:
         raise ValueError(f"unknown baseline {method!r}; expected one of {', '.join(METHODS)}.")
@@ -391,7 +394,7 @@ def train_baseline(
     buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed,
                                         device=device)
     with device:  # every network and optimizer state is created there
-        actor, update = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp)
+        actor, update, loss = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp)
     watch = FiniteWatch({"iql": "IQL", "iql_latent": "IQL", "td3bc": "TD3+BC", "bc": "BC"}[method])
     setup_s = time.perf_counter() - start_time
 
@@ -443,4 +446,5 @@ def train_baseline(
         "hyperparameters": hp,
         **extra,
     }
-    return (results, actor, env) if return_policy else results
+    out = ((results, actor, env) if return_policy else (results,)) + ((loss,) if return_loss else ())
+    return out if len(out) > 1 else results

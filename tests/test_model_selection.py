@@ -122,3 +122,40 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     assert record["episodes"]["scores"]["actor"] == pytest.approx(expected, rel=1e-6)
     text = model_selection.table({("arm", "task", 0): record})
     assert text.splitlines()[2].startswith("| arm | task | 0 | ")
+
+
+def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finished_recipe_run, monkeypatch):
+    from benchmarks.reproduction import local_q
+
+    for module in (model_selection, local_q):
+        monkeypatch.setattr(module, "LOCAL_STATES", 12)
+    monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
+    monkeypatch.setattr(local_q, "start_rows", lambda data: torch.arange(12))
+    monkeypatch.setattr(model_selection, "HORIZON", 5)
+    monkeypatch.setattr(model_selection, "EPISODES", 2)
+    monkeypatch.setattr(local_q, "EPISODES", 2)
+    monkeypatch.setattr(local_q, "IQL_STEPS", 30)
+    record = local_q.local_q(finished_recipe_run)
+    reference = model_selection.model_selection(finished_recipe_run)
+    # the same states, candidates and continuation: the actor's own candidate's returns agree
+    assert record["actor_return"] == pytest.approx(reference["local"]["actor_return"])
+    assert record["states"] == 12 and -1.0 <= record["q_rank"] <= 1.0 and record["iql_steps"] == 30
+    assert local_q.table({("arm", "task", 0): record}).splitlines()[2].startswith("| arm | task | 0 | ")
+
+
+def test_min_q_is_the_smaller_of_iqls_two_critics():
+    from benchmarks.baselines import HYPERPARAMETERS, _build_iql
+    from benchmarks.reproduction.local_q import min_q
+    from torchrl.data import Bounded
+
+    spec = Bounded(-torch.ones(3), torch.ones(3), shape=(3,))
+    _, _, loss = _build_iql("observation", 5, spec, HYPERPARAMETERS["iql"])
+    observation, action = torch.randn(7, 5), torch.rand(7, 3) * 2 - 1
+    critics = []
+    for k in range(2):
+        net = loss.qvalue_network
+        with loss.qvalue_network_params[k].to_module(net):
+            critics.append(net(TensorDict({"observation": observation, "action": action}, [7]))["state_action_value"])
+    expected = torch.minimum(*critics).squeeze(-1)
+    assert not torch.allclose(critics[0], critics[1])  # two critics initialized apart: the minimum is a choice
+    torch.testing.assert_close(min_q(loss, observation, action), expected)

@@ -100,6 +100,7 @@ class LatentActionChoice(nn.Module):
         latents = latent.expand(CANDIDATES, *latent.shape)
         return latent, latent_actions, latents + tsidm.latent_forward(latents, latent_actions)
 
+    @torch.no_grad()
     def actions(self, latent_actions: torch.Tensor) -> torch.Tensor:
         return self.tsidm.decode_action(latent_actions).clamp(self.head.low, self.head.high)
 
@@ -130,27 +131,38 @@ def _summary_of(x: torch.Tensor) -> dict:
     return {"median": x.median().item(), "mean": x.mean().item(), "share_positive": (x > 0).float().mean().item()}
 
 
+def candidate_policies(run, data):
+    """``choose`` → the run's :class:`LatentActionChoice`, with σ from the latent actions of ``data`` (its
+    training transitions); every policy it makes draws the same candidates for the same observations."""
+    tsidm, guide, head = run.tsidm, run.actor[1].module, run.actor[-1].module
+    if head.inverse_dropout:
+        raise SystemExit("error: the run acts with h_inv's dropout on: its latent action is not one number")
+    with torch.no_grad():
+        latent = tsidm.encode_state(data["observation"])
+        sigma = SCALE * tsidm.infer_latent_action(latent, tsidm.encode_state(data["next", "observation"])).std(0)
+    return lambda choose: LatentActionChoice(tsidm, guide, head, sigma, choose)
+
+
+def returns_after(run, policy, observation: torch.Tensor, first_actions: torch.Tensor, gamma: float) -> torch.Tensor:
+    """``(candidates, states)``: the discounted return over ``HORIZON`` steps from each state, the first step
+    taking each candidate's action of ``first_actions`` ``(candidates, states, ·)``, then ``policy``."""
+    return rollout_returns(run.task.env_id, observation.repeat(len(first_actions), 1), policy, HORIZON, gamma,
+                           first_actions=first_actions.flatten(0, 1)).reshape(len(first_actions), len(observation))
+
+
 def model_selection(run_dir) -> dict:
     run = load_finished_run(run_dir, episodes=EPISODES)
     cfg = run_config(run_dir)
     data, _ = make_data(cfg)  # the rows in the trainer's order
     tsidm = run.tsidm
     value, _, gamma = retrain_value(cfg, data, tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
-    guide, head = run.actor[1].module, run.actor[-1].module
-    if head.inverse_dropout:
-        raise SystemExit(f"error: {run_dir} acts with h_inv's dropout on: its latent action is not one number")
+    policy = candidate_policies(run, data)
+    chooser = policy(own_action)
+    head = chooser.head
     with torch.no_grad():
-        latent = tsidm.encode_state(data["observation"])
-        spread = value(latent).std().item()
-        data_latent_actions = tsidm.infer_latent_action(latent, tsidm.encode_state(data["next", "observation"]))
-    sigma = SCALE * data_latent_actions.std(0)
-
-    def policy(choose, seed=0):
-        return LatentActionChoice(tsidm, guide, head, sigma, choose, seed=seed)
-
+        spread = value(tsidm.encode_state(data["observation"])).std().item()
     rows = start_rows(data)
     observation = data[rows]["observation"]
-    chooser = policy(own_action)
     _, latent_actions, predicted = chooser.candidates(observation)
     with torch.no_grad():
         predicted_value = value(predicted)
@@ -177,14 +189,12 @@ def model_selection(run_dir) -> dict:
 
     local = torch.arange(min(LOCAL_STATES, len(rows)))
     first_actions = torch.stack([chooser.actions(latent_actions[k, local]) for k in range(CANDIDATES)])
-    after = rollout_returns(run.task.env_id, observation[local].repeat(CANDIDATES, 1), policy(own_action), HORIZON,
-                            gamma, first_actions=first_actions.flatten(0, 1)).reshape(CANDIDATES, len(local))
+    after = returns_after(run, policy(own_action), observation[local], first_actions, gamma)
     local_gain = after[chosen[local], local] - after[0]
     half_width = (head.high - head.low) / 2
     signs = torch.randint(2, first_actions.shape, generator=torch.Generator().manual_seed(0)) * 2 - 1
     nudged = (first_actions + NUDGE * half_width * signs).clamp(head.low, head.high)
-    after_nudged = rollout_returns(run.task.env_id, observation[local].repeat(CANDIDATES, 1), policy(own_action),
-                                   HORIZON, gamma, first_actions=nudged.flatten(0, 1)).reshape(CANDIDATES, len(local))
+    after_nudged = returns_after(run, policy(own_action), observation[local], nudged, gamma)
 
     choices = {"actor": own_action, "chosen": by_value(value), "random": at_random()}
     horizon = {name: rollout_returns(run.task.env_id, observation, policy(choose), HORIZON, gamma)
