@@ -6,7 +6,7 @@
 RESULTS.md is the one place the study's numbers are published: every arm on every task (seeds,
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
---report``, ``heldout_selection --table``, ``realization --table``, ``value_delivery --table`` and ``model_selection --table``, each under the command that prints it alone.
+--report``, ``heldout_selection --table``, ``realization --table``, ``value_delivery --table``, ``model_selection --table`` and ``local_q --table``, each under the command that prints it alone.
 Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
 it is generated and is not edited by hand.
 """
@@ -20,7 +20,7 @@ import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
 from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale,
-                                     model_selection, realization, summary, value_delivery)
+                                     local_q, model_selection, realization, summary, value_delivery)
 
 RESULTS = summary.HERE / "results"
 OUT = summary.HERE / "RESULTS.md"
@@ -156,6 +156,7 @@ def render() -> str:
         *realization_section(),
         *value_delivery_section(),
         *model_selection_section(),
+        *local_q_section(),
     ])
 
 
@@ -221,6 +222,16 @@ def model_selection_section() -> list[str]:
         f"candidate in hindsight, and for one fixed other candidate. {value_delivery.HORIZON}-step return: discounted,",
         "medians, acting at every step with the actor's own candidate, the chosen one, or one at random.",
         f"Episodes: the normalized score over {ms.EPISODES} evaluation episodes seeded alike for the three.",
+    ])
+
+
+def local_q_section() -> list[str]:
+    return reading_section(local_q, "Does IQL's Q order one step's alternatives where TELS's V does not?", [
+        f"`{local_q.COMMAND} --table`: IQL (torchrl's offline config, {local_q.IQL_STEPS} steps) trained on each",
+        "TELS run's own training transitions, read on the start states, candidates and returns of the local",
+        "columns above: within a state, the rank correlation over the candidates of IQL's min(Q₁, Q₂)(s, a) with",
+        "the discounted return after (the candidate's action, then the TELS actor), median over states. IQL's",
+        "score: its one evaluation at the end of training.",
     ])
 
 
