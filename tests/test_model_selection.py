@@ -112,6 +112,7 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     assert local["states"] == 12 and local["actor_return"] == pytest.approx(record["horizon_return"]["actor"])
     assert all(-1.0 <= local[key] <= 1.0 for key in ("value_rank", "model_rank", "reward_rank",
                                                       "reward_and_value_rank"))
+    assert local["return_spread"] > 0.0
     assert local["repeat_rank"] == pytest.approx(1.0)  # the simulator restarted from a state is deterministic
     # the best candidate is at least the chosen one, the actor's own (gain 0) included
     assert record["best"]["median"] >= max(record["chosen"]["median"], record["other"]["median"], 0.0)

@@ -26,7 +26,8 @@ The hypothesis is refuted if any of these fails:
   (``reward_rank``) and with the one-step target r + γ·V(s') (``reward_and_value_rank``), and the return of the
   chosen candidate's first step minus the actor's own (``chosen_gain``). V ranks the data's states by their
   return-to-go across episodes (``value_delivery``); near 0 here, it cannot tell one step's alternatives apart,
-  and no choice by V, of a proposal or of an action, can deliver. How far the return that follows is
+  and no choice by V, of a proposal or of an action, can deliver. ``return_spread``: the std of these returns
+  over the candidates (scaled as V's rewards) over V's spread on the data, the precision a local choice needs. How far the return that follows is
   predictable at all: ``repeat_rank``, the same rank correlation of the returns with those after first actions
   nudged by ``NUDGE`` (in the action box's half-widths, a fixed random sign per dimension), the ceiling of any
   ranking where small differences in the first step grow into large ones later;
@@ -219,7 +220,9 @@ def model_selection(run_dir) -> dict:
                   "reward_and_value_rank": row_spearman((rewards + gamma * reached)[:, local].T,
                                                         after.T).nanmedian().item(),
                   "repeat_rank": row_spearman(after_nudged.T, after.T).nanmedian().item(), "nudge": NUDGE,
-                  "actor_return": after[0].median().item(), "chosen_gain": _summary_of(local_gain)},
+                  "actor_return": after[0].median().item(), "chosen_gain": _summary_of(local_gain),
+                  # how much the alternatives' returns differ, in V's units, against V's spread over the data
+                  "return_spread": (cfg.dataset.reward_scale * after.std(0) / spread).median().item()},
         "horizon_return": {name: returns.median().item() for name, returns in horizon.items()}
         | {"chosen_over_actor": (horizon["chosen"] > horizon["actor"]).float().mean().item(),
            "random_over_actor": (horizon["random"] > horizon["actor"]).float().mean().item()},
