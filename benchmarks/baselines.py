@@ -329,8 +329,8 @@ def train_baseline(
         log_fn: called with ``({"eval/normalized_score": ..., ...}, step)`` after each evaluation.
         progress: print one line per evaluation.
         return_policy: also return the trained actor and the evaluation env
-        return_loss: also return the trained loss module (with its networks' parameters)
             (with the observation transforms the actor expects).
+        return_loss: also return the trained loss module (with its networks' parameters).
 
     Returns:
         A dict like the recipe's ``results.json``: ``final_normalized_score_mean``/``_std``
