@@ -160,3 +160,16 @@ def test_min_q_is_the_smaller_of_iqls_two_critics():
     expected = torch.minimum(*critics).squeeze(-1)
     assert not torch.allclose(critics[0], critics[1])  # two critics initialized apart: the minimum is a choice
     torch.testing.assert_close(min_q(loss, observation, action), expected)
+
+
+def test_episode_changes_are_paired_per_seed():
+    def record(actor, chosen, random):
+        return {"episodes": {"scores": {"actor": actor, "chosen": chosen, "random": random}}}
+
+    records = {("arm", "task", 0): record(10.0, 14.0, 9.0), ("arm", "task", 1): record(30.0, 28.0, 29.0),
+               ("arm", "other", 0): record(5.0, 6.0, 7.0)}
+    lines = model_selection.episode_changes(records)
+    assert lines == [f"- arm, other, {model_selection.EPISODES} episodes against the actor's: chosen +1.0 (1 of 1 up); "
+                     "random +2.0 (1 of 1 up).",
+                     f"- arm, task, {model_selection.EPISODES} episodes against the actor's: chosen +1.0 (1 of 2 up); "
+                     "random -1.0 (0 of 2 up)."]

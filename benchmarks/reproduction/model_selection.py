@@ -40,6 +40,8 @@ Writes ``benchmarks/reproduction/results/model_selection/<name>.json`` (skipped 
 """
 from __future__ import annotations
 
+import statistics
+
 import gymnasium as gym
 import torch
 from tensordict.nn import TensorDictModule
@@ -258,7 +260,23 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
             f"| {_cell(r['best'])} | {_cell(r['other'])} | {_local_ranks(local)} "
             f"| {'—' if local is None else _cell(local['chosen_gain'])} | {h['actor']:.1f}, {h['chosen']:.1f}, {h['random']:.1f} "
             f"| {h['chosen_over_actor']:.0%} | {e['actor']:.1f}, {e['chosen']:.1f}, {e['random']:.1f} |")
-    return "\n".join(lines)
+    return "\n".join(lines + ["", *episode_changes(records)])
+
+
+def episode_changes(records: dict[tuple[str, str, int], dict]) -> list[str]:
+    """Per arm and task, the paired change of the episodes' score from the actor's, for the chosen and the
+    random candidate: the mean over seeds and how many seeds are up."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for (arm, task, _), record in sorted(records.items()):
+        groups.setdefault((arm, task), []).append(record["episodes"]["scores"])
+    lines = []
+    for (arm, task), scores in groups.items():
+        cells = []
+        for name in ("chosen", "random"):
+            changes = [s[name] - s["actor"] for s in scores]
+            cells.append(f"{name} {statistics.mean(changes):+.1f} ({sum(c > 0 for c in changes)} of {len(changes)} up)")
+        lines.append(f"- {arm}, {task}, {EPISODES} episodes against the actor's: {'; '.join(cells)}.")
+    return lines
 
 
 def _summary(record: dict) -> str:
