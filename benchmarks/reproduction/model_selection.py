@@ -26,11 +26,12 @@ The hypothesis is refuted if any of these fails:
   (``reward_rank``) and with the one-step target r + γ·V(s') (``reward_and_value_rank``), and the return of the
   chosen candidate's first step minus the actor's own (``chosen_gain``). V ranks the data's states by their
   return-to-go across episodes (``value_delivery``); near 0 here, it cannot tell one step's alternatives apart,
-  and no choice by V, of a proposal or of an action, can deliver. ``return_spread``: the std of these returns
-  over the candidates (scaled as V's rewards) over V's spread on the data, the precision a local choice needs. How far the return that follows is
-  predictable at all: ``repeat_rank``, the same rank correlation of the returns with those after first actions
-  nudged by ``NUDGE`` (in the action box's half-widths, a fixed random sign per dimension), the ceiling of any
-  ranking where small differences in the first step grow into large ones later;
+  and no choice by V, of a proposal or of an action, can deliver. ``return_spread``: the std of these
+  returns over the candidates (scaled as V's rewards) over V's spread on the data, the precision a local
+  choice needs. How far the return that follows is predictable at all: ``repeat_rank``, the same rank
+  correlation of the returns with those after first actions nudged by ``NUDGE`` (in the action box's
+  half-widths, a fixed random sign per dimension), the ceiling of any ranking where small differences in the
+  first step grow into large ones later;
 * ``horizon``: the discounted return over ``HORIZON`` steps from the start states, choosing at every step,
   against the actor and against choosing at random among the same candidates;
 * ``episodes``: the normalized score over ``EPISODES`` whole evaluation episodes, seeded alike for the
