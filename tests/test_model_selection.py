@@ -128,10 +128,8 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
 def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finished_recipe_run, monkeypatch):
     from benchmarks.reproduction import local_q
 
-    for module in (model_selection, local_q):
-        monkeypatch.setattr(module, "LOCAL_STATES", 12)
+    monkeypatch.setattr(model_selection, "LOCAL_STATES", 12)  # local_q reads its states through model_selection
     monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
-    monkeypatch.setattr(local_q, "start_rows", lambda data: torch.arange(12))
     monkeypatch.setattr(model_selection, "HORIZON", 5)
     monkeypatch.setattr(model_selection, "EPISODES", 2)
     monkeypatch.setattr(local_q, "EPISODES", 2)

@@ -22,10 +22,10 @@ from tensordict import TensorDict
 from benchmarks.baselines import train_baseline
 from benchmarks.harness import REPO
 from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.model_selection import (CANDIDATES, candidate_policies, LOCAL_STATES, own_action,
-                                                     returns_after, row_spearman)
+from benchmarks.reproduction.model_selection import (CANDIDATES, local_returns, own_action, row_spearman,
+                                                     start_candidates)
 from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main
-from benchmarks.reproduction.value_delivery import run_config, start_rows
+from benchmarks.reproduction.value_delivery import run_config
 from torchrl_tels.trainer import make_data
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "local_q"
@@ -48,13 +48,10 @@ def local_q(run_dir) -> dict:
     run = load_finished_run(run_dir, episodes=EPISODES)
     cfg = run_config(run_dir)
     data, _ = make_data(cfg)
-    policy = candidate_policies(run, data)
-    chooser = policy(own_action)
-    observation = data[start_rows(data)]["observation"]
-    _, latent_actions, _ = chooser.candidates(observation)  # the candidates model_selection reads
-    local = torch.arange(min(LOCAL_STATES, len(observation)))
-    first_actions = torch.stack([chooser.actions(latent_actions[k, local]) for k in range(CANDIDATES)])
-    after = returns_after(run, policy(own_action), observation[local], first_actions, float(cfg.value.gamma))
+    policy, observation, _, latent_actions, _ = start_candidates(run, data)  # the candidates model_selection reads
+    candidate_actions = policy(own_action).actions(latent_actions)
+    local, after = local_returns(run, policy, observation, candidate_actions, float(cfg.value.gamma))
+    first_actions = candidate_actions[:, local]
     results, _, _, loss = train_baseline("iql", data, task=run.task.name, steps=IQL_STEPS, seed=int(run.results["seed"]),
                                          eval_interval=IQL_STEPS, eval_episodes=EPISODES, eval_last_n=1,
                                          progress=False, return_policy=True, return_loss=True)

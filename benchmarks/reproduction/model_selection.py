@@ -82,7 +82,7 @@ def row_spearman(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 class LatentActionChoice(nn.Module):
     """Observation → action: the actor's latent action of Eq. (11) and ``CANDIDATES - 1`` Gaussian perturbations
     of it, decoded by ψ_a and clipped like the actor's; ``choose`` picks one per state from the candidates'
-    ``(latent, latent actions, predicted next latents)`` (``"first"``: the actor's own)."""
+    ``(latent, latent actions, predicted next latents)`` (:func:`own_action`: the actor's own)."""
 
     def __init__(self, tsidm: TSIDM, guide: nn.Module, head: nn.Module, sigma: torch.Tensor, choose, seed: int = 0):
         super().__init__()
@@ -95,10 +95,7 @@ class LatentActionChoice(nn.Module):
         """``(z, z_a, predicted next latents)``, candidates first: ``(CANDIDATES, states, ·)``."""
         tsidm = self.tsidm
         latent = tsidm.encode_state(observation)
-        proposal = self.guide(latent)
-        if self.head.reencode_proposal:
-            proposal = tsidm.embed_state(tsidm.decode_state(proposal))
-        own = tsidm.infer_latent_action(latent, proposal)
+        own = self.head.latent_action(latent, self.guide(latent))
         noise = torch.randn((CANDIDATES - 1, *own.shape), generator=self.generator)
         latent_actions = torch.cat([own.unsqueeze(0), own + self.sigma * noise.to(own)])
         latents = latent.expand(CANDIDATES, *latent.shape)
@@ -106,7 +103,7 @@ class LatentActionChoice(nn.Module):
 
     @torch.no_grad()
     def actions(self, latent_actions: torch.Tensor) -> torch.Tensor:
-        return self.tsidm.decode_action(latent_actions).clamp(self.head.low, self.head.high)
+        return self.head.action(latent_actions)
 
     @torch.no_grad()
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
@@ -154,31 +151,41 @@ def returns_after(run, policy, observation: torch.Tensor, first_actions: torch.T
                            first_actions=first_actions.flatten(0, 1)).reshape(len(first_actions), len(observation))
 
 
+def start_candidates(run, data):
+    """The run's candidate policies (:func:`candidate_policies`), the observations of ``value_delivery``'s start
+    states and their candidates ``(z, z_a, predicted next latents)``."""
+    policy = candidate_policies(run, data)
+    observation = data[start_rows(data)]["observation"]
+    return policy, observation, *policy(own_action).candidates(observation)
+
+
+def local_returns(run, policy, observation: torch.Tensor, candidate_actions: torch.Tensor, gamma: float):
+    """From the first ``LOCAL_STATES`` start states: their indices and :func:`returns_after` with the candidates'
+    actions ``candidate_actions`` ``(candidates, states, ·)`` first, then the actor."""
+    local = torch.arange(min(LOCAL_STATES, len(observation)))
+    return local, returns_after(run, policy(own_action), observation[local], candidate_actions[:, local], gamma)
+
+
 def model_selection(run_dir) -> dict:
     run = load_finished_run(run_dir, episodes=EPISODES)
     cfg = run_config(run_dir)
     data, _ = make_data(cfg)  # the rows in the trainer's order
     tsidm = run.tsidm
     value, _, gamma = retrain_value(cfg, data, tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
-    policy = candidate_policies(run, data)
+    policy, observation, latent, latent_actions, predicted = start_candidates(run, data)
     chooser = policy(own_action)
-    head = chooser.head
+    head, candidate_actions = chooser.head, chooser.actions(latent_actions)  # (candidates, states, ·)
     with torch.no_grad():
         spread = value(tsidm.encode_state(data["observation"])).std().item()
-    rows = start_rows(data)
-    observation = data[rows]["observation"]
-    _, latent_actions, predicted = chooser.candidates(observation)
-    with torch.no_grad():
         predicted_value = value(predicted)
-        consistency = tsidm.tsym_consistency(tsidm.encode_state(observation).expand(CANDIDATES, -1, -1),
-                                             latent_actions, cfg.tsidm.dim_reduction)
+        consistency = tsidm.tsym_consistency(latent.expand(CANDIDATES, -1, -1), latent_actions,
+                                             cfg.tsidm.dim_reduction)
     env = gym.make(run.task.env_id)
     env.reset(seed=0)
     try:
         reached, rewards = [], []  # V at the state each candidate's action reaches (0 where it falls), reward
         for k in range(CANDIDATES):
-            next_observation, reward, terminated = step_from_observations(env, observation,
-                                                                          chooser.actions(latent_actions[k]))
+            next_observation, reward, terminated = step_from_observations(env, observation, candidate_actions[k])
             with torch.no_grad():
                 reached.append(torch.where(terminated, 0.0, value(tsidm.encode_state(next_observation))))
             rewards.append(cfg.dataset.reward_scale * reward.float() + cfg.dataset.reward_bias)  # V's units
@@ -186,15 +193,14 @@ def model_selection(run_dir) -> dict:
         env.close()
     reached, rewards = torch.stack(reached), torch.stack(rewards)  # (candidates, states)
     chosen = predicted_value.argmax(0)
-    states = torch.arange(len(rows))
+    states = torch.arange(len(observation))
     gain = lambda x: (x - reached[0]) / spread
     model_rank = row_spearman(predicted_value.T, reached.T)
     tsym_rank = row_spearman(-consistency.T, reached.T)
 
-    local = torch.arange(min(LOCAL_STATES, len(rows)))
-    first_actions = torch.stack([chooser.actions(latent_actions[k, local]) for k in range(CANDIDATES)])
-    after = returns_after(run, policy(own_action), observation[local], first_actions, gamma)
+    local, after = local_returns(run, policy, observation, candidate_actions, gamma)
     local_gain = after[chosen[local], local] - after[0]
+    first_actions = candidate_actions[:, local]
     half_width = (head.high - head.low) / 2
     signs = torch.randint(2, first_actions.shape, generator=torch.Generator().manual_seed(0)) * 2 - 1
     nudged = (first_actions + NUDGE * half_width * signs).clamp(head.low, head.high)
@@ -209,7 +215,7 @@ def model_selection(run_dir) -> dict:
         returns = evaluate_policy(module, run.env, EPISODES, seed=run.seed)
         episodes[name] = float(normalized_score(run.task, torch.tensor(returns)).mean())
     return {
-        "final_score": run.results["final_normalized_score_mean"], "gamma": gamma, "states": len(rows),
+        "final_score": run.results["final_normalized_score_mean"], "gamma": gamma, "states": len(observation),
         "candidates": CANDIDATES, "scale": SCALE, "value_spread": spread,
         "model_rank": {"median": model_rank.nanmedian().item(), "rows": int(model_rank.isfinite().sum())},
         "tsym_rank": {"median": tsym_rank.nanmedian().item(), "rows": int(tsym_rank.isfinite().sum())},

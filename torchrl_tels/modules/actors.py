@@ -142,18 +142,26 @@ class LatentActionHead(_FrozenTSIDMPart):
         self.reencode_proposal = bool(reencode_proposal)
         self.inverse_dropout = bool(inverse_dropout)
 
-    def forward(self, latent_state: torch.Tensor, next_latent_state: torch.Tensor) -> torch.Tensor:
+    def latent_action(self, latent_state: torch.Tensor, next_latent_state: torch.Tensor) -> torch.Tensor:
+        r""":math:`z_a = h_{inv}(z_s, z_{s'}^*)`, with the proposal re-encoded and h_inv's dropout as configured."""
         if self.reencode_proposal:
             next_latent_state = self.tsidm.embed_state(self.tsidm.decode_state(next_latent_state))
         self.tsidm.inverse_dynamics.train(self.inverse_dropout)
         try:
-            # Eq. (11)
-            action = self.tsidm.decode_action(self.tsidm.infer_latent_action(latent_state, next_latent_state))
+            return self.tsidm.infer_latent_action(latent_state, next_latent_state)
         finally:
             self.tsidm.inverse_dynamics.eval()
+
+    def action(self, latent_action: torch.Tensor) -> torch.Tensor:
+        r""":math:`\psi_a(z_a)`, clipped to the action bounds."""
+        action = self.tsidm.decode_action(latent_action)
         if self.low is not None or self.high is not None:
             action = action.clamp(self.low, self.high)
         return action
+
+    def forward(self, latent_state: torch.Tensor, next_latent_state: torch.Tensor) -> torch.Tensor:
+        # Eq. (11)
+        return self.action(self.latent_action(latent_state, next_latent_state))
 
 
 def make_tels_actor(
