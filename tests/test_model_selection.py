@@ -171,3 +171,19 @@ def test_episode_changes_are_paired_per_seed():
                      "random +2.0 (1 of 1 up).",
                      f"- arm, task, {model_selection.EPISODES} episodes against the actor's: chosen +1.0 (1 of 2 up); "
                      "random -1.0 (0 of 2 up)."]
+
+
+def test_the_table_puts_each_local_rank_under_its_column():
+    summary = {"median": 0.01, "share_positive": 0.5}
+    local = {"value_rank": 0.11, "model_rank": 0.22, "reward_rank": 0.33, "reward_and_value_rank": 0.44,
+             "repeat_rank": 0.98, "return_spread": 0.0123, "chosen_gain": summary}
+    record = {"final_score": 40.0, "model_rank": {"median": 0.5}, "tsym_rank": {"median": 0.0},
+              "predicted": summary, "chosen": summary, "best": summary, "other": summary, "local": local,
+              "horizon_return": {"actor": 1.0, "chosen": 2.0, "random": 3.0, "chosen_over_actor": 0.5},
+              "episodes": {"scores": {"actor": 1.0, "chosen": 2.0, "random": 3.0}}}
+    header, rule, row = model_selection.table({("arm", "task", 0): record}).splitlines()[:3]
+    cells = dict(zip(header.strip("|").split(" | "), row.strip("|").split(" | ")))
+    assert len(cells) == rule.count("---") == row.count(" | ") + 1
+    assert cells["local: rank with the return after of V, model, reward, r + γV; nudged repeat"] == \
+        "0.11, 0.22, 0.33, 0.44; 0.98"
+    assert cells["local: return spread over V's spread"] == "0.012"

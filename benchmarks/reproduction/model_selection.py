@@ -246,8 +246,14 @@ def _cell(summary: dict) -> str:
 def _local_ranks(local: dict | None) -> str:
     if local is None:
         return "—"
-    ceiling = f", {local['repeat_rank']:.2f}" if "repeat_rank" in local else ""
-    return f"{local['value_rank']:.2f}, {local['model_rank']:.2f}{ceiling}"
+    ranks = [local[key] for key in ("value_rank", "model_rank", "reward_rank", "reward_and_value_rank")
+             if key in local]
+    ceiling = f"; {local['repeat_rank']:.2f}" if "repeat_rank" in local else ""
+    return ", ".join(f"{rank:.2f}" for rank in ranks) + ceiling
+
+
+def _return_spread(local: dict | None) -> str:
+    return "—" if local is None or "return_spread" not in local else f"{local['return_spread']:.3f}"
 
 
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
@@ -255,16 +261,17 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     records = run_results(RESULTS) if records is None else records
     lines = ["| arm | task | seed | run's score | model rank | T-symmetry rank | predicted gain of the chosen "
              "| reached gain: chosen | best candidate | other candidate "
-             f"| local: V rank, model rank with the return after (nudged repeat) | local: return gain of the chosen first step "
+             "| local: rank with the return after of V, model, reward, r + γV; nudged repeat "
+             "| local: return spread over V's spread | local: return gain of the chosen first step "
              f"| {HORIZON}-step return: actor, chosen, random | chosen above actor "
              f"| {EPISODES} episodes: actor, chosen, random |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for (arm, task, seed), r in sorted(records.items()):
         h, e, local = r["horizon_return"], r["episodes"]["scores"], r.get("local")
         lines.append(
             f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['model_rank']['median']:.2f} "
             f"| {r['tsym_rank']['median']:.2f} | {_cell(r['predicted'])} | {_cell(r['chosen'])} "
-            f"| {_cell(r['best'])} | {_cell(r['other'])} | {_local_ranks(local)} "
+            f"| {_cell(r['best'])} | {_cell(r['other'])} | {_local_ranks(local)} | {_return_spread(local)} "
             f"| {'—' if local is None else _cell(local['chosen_gain'])} | {h['actor']:.1f}, {h['chosen']:.1f}, {h['random']:.1f} "
             f"| {h['chosen_over_actor']:.0%} | {e['actor']:.1f}, {e['chosen']:.1f}, {e['random']:.1f} |")
     return "\n".join(lines + ["", *episode_changes(records)])
