@@ -182,7 +182,7 @@ def test_the_table_puts_each_local_rank_under_its_column():
               "horizon_return": {"actor": 1.0, "chosen": 2.0, "random": 3.0, "chosen_over_actor": 0.5},
               "episodes": {"scores": {"actor": 1.0, "chosen": 2.0, "random": 3.0}}}
     header, rule, row = model_selection.table({("arm", "task", 0): record}).splitlines()[:3]
-    cells = dict(zip(header.strip("|").split(" | "), row.strip("|").split(" | ")))
+    cells = dict(zip(header.strip("| ").split(" | "), row.strip("| ").split(" | ")))
     assert len(cells) == rule.count("---") == row.count(" | ") + 1
     assert cells["local: rank with the return after of V, model, reward, r + γV; nudged repeat"] == \
         "0.11, 0.22, 0.33, 0.44; 0.98"

@@ -89,13 +89,18 @@ def check_finished_run(parser: argparse.ArgumentParser, run_dir: Path, required=
             parser.error(f"{run_dir / name} is missing: pass a finished run folder")
 
 
-def reading_main(argv, *, prog: str, description: str, results: Path, read: Callable[[Path], dict],
-                 table: Callable[[], str], summary: Callable[[dict], str], required=RUN_FILES) -> None:
+def reading_main(argv, *, prog: str, description: str, results: Path, read: Callable[..., dict],
+                 table: Callable[[], str], summary: Callable[[dict], str], required=RUN_FILES,
+                 options: dict[str, dict] | None = None) -> None:
     """The command line of a reading of finished runs: ``--run-dir``/``--name`` writes
-    ``results/<name>.json`` from ``read(run_dir)`` (skipped if it exists unless ``--force``) and prints
-    ``summary(record)``; ``--table`` prints ``table()``."""
+    ``results/<name>.json`` from ``read(run_dir, **options)`` (skipped if it exists unless ``--force``) and
+    prints ``summary(record)``; ``--table`` prints ``table()``. ``options``: the reading's own arguments,
+    ``{name: argparse keywords}``, passed to ``read`` by name."""
+    options = options or {}
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--run-dir", type=Path, help="a finished recipe run")
+    for name, keywords in options.items():
+        parser.add_argument(f"--{name}", **keywords)
     parser.add_argument("--name", help=f"results land in {repo_relative(results)}/<name>.json")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
@@ -111,7 +116,7 @@ def reading_main(argv, *, prog: str, description: str, results: Path, read: Call
     out = results / f"{args.name}.json"
     if skip_existing(out, args.force):
         return
-    record = read(args.run_dir)
+    record = read(args.run_dir, **{name: getattr(args, name) for name in options})
     record.update(run_dir=str(args.run_dir), command=invocation(),
                   date=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                   machine={**machine_description(), "threads": args.threads})

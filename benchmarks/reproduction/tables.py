@@ -6,7 +6,9 @@
 RESULTS.md is the one place the study's numbers are published: every arm on every task (seeds,
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
---report``, ``heldout_selection --table``, ``realization --table``, ``value_delivery --table``, ``model_selection --table`` and ``local_q --table``, each under the command that prints it alone.
+--report``, ``heldout_selection --table``, ``realization --table``, ``value_delivery --table``,
+``model_selection --table``, ``local_q --table`` and ``oracle_choice --table``, each under the command
+that prints it alone.
 Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
 it is generated and is not edited by hand.
 """
@@ -20,7 +22,8 @@ import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
 from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale,
-                                     local_q, model_selection, realization, summary, value_delivery)
+                                     local_q, model_selection, oracle_choice, realization, summary,
+                                     value_delivery)
 
 RESULTS = summary.HERE / "results"
 OUT = summary.HERE / "RESULTS.md"
@@ -157,6 +160,7 @@ def render() -> str:
         *value_delivery_section(),
         *model_selection_section(),
         *local_q_section(),
+        *oracle_choice_section(),
     ])
 
 
@@ -241,6 +245,19 @@ def local_q_section() -> list[str]:
         "columns above: within a state, the rank correlation over the candidates of IQL's min(Q₁, Q₂)(s, a) with",
         "the discounted return after (the candidate's action, then the TELS actor), median over states. IQL's",
         "score: its one evaluation at the end of training.",
+    ])
+
+
+def oracle_choice_section() -> list[str]:
+    oc = oracle_choice
+    return reading_section(oc, "What would a perfect value gain from one step's alternatives?", [
+        f"`{oc.COMMAND} --table`: the candidates of the model-selection table ({oc.CANDIDATES} latent actions around",
+        "the actor's own), ranked by the truth: from the simulator's exact state, each candidate's action, then the",
+        "actor, for the lookahead's number of steps, discounted as V is; the candidate of the largest return is",
+        f"acted. The first {oc.STEPS} steps of each episode, reset alike for the actor and this oracle: the mean",
+        "undiscounted return over the window, the mean paired change (episodes where the oracle is up), the median",
+        "number of steps each lasted (the window's length where it did not fall), and the share of the oracle's",
+        "decisions that were not the actor's own candidate.",
     ])
 
 
