@@ -125,6 +125,19 @@ def test_a_reading_of_a_recipe_run(finished_recipe_run, monkeypatch):
     assert text.splitlines()[2].startswith("| arm | task | 0 | ")
 
 
+def test_a_reading_at_its_own_horizon_reads_every_return_over_it(finished_recipe_run, monkeypatch):
+    monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(6))
+    monkeypatch.setattr(model_selection, "HORIZON", 5)
+    monkeypatch.setattr(model_selection, "EPISODES", 1)
+    monkeypatch.setattr(model_selection, "LOCAL_STATES", 6)
+    short, default = (model_selection.model_selection(finished_recipe_run, horizon=h) for h in (2, None))
+    assert (short["horizon"], default["horizon"]) == (2, 5)
+    # the local returns after the actor's own candidate are the actor's rollouts over the same horizon
+    for record in (short, default):
+        assert record["local"]["actor_return"] == pytest.approx(record["horizon_return"]["actor"])
+    assert short["horizon_return"]["actor"] < default["horizon_return"]["actor"]  # rewards are positive here
+
+
 def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finished_recipe_run, monkeypatch):
     from benchmarks.reproduction import local_q
 

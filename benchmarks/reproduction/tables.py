@@ -224,7 +224,7 @@ def model_selection_section() -> list[str]:
         "the state the actor's own action reaches, over V's standard deviation on the data, medians (share above",
         "0): for the candidate of largest predicted V (\"chosen\", with the model's own predicted gain), for the best",
         "candidate in hindsight, and for one fixed other candidate. Local, from the first",
-        f"{ms.LOCAL_STATES} start states: each candidate's action first, then the actor, for {value_delivery.HORIZON}",
+        f"{ms.LOCAL_STATES} start states: each candidate's action first, then the actor, for the horizon's",
         "steps; within a state, the rank correlation over the candidates of this discounted return with V at the",
         "state the first step reached, with V at the predicted next latent, with the first step's reward and with",
         "r + γ·V(s'), and, as the ceiling of any ranking, with the same return after first actions nudged by",
@@ -232,8 +232,9 @@ def model_selection_section() -> list[str]:
         "first action); medians over states. Return spread: the std of these returns over the candidates, in V's",
         "units, over V's std on the data (median over states), the precision a choice among them needs. The",
         "return gain of the chosen candidate's first step over the actor's own: median (share above 0).",
-        f"{value_delivery.HORIZON}-step return: discounted,",
-        "medians, acting at every step with the actor's own candidate, the chosen one, or one at random.",
+        "Return over the horizon: discounted, medians, acting at every step with the actor's own candidate, the",
+        f"chosen one, or one at random. The horizon of every return in a row is its own column ({value_delivery.HORIZON}",
+        "unless the reading says otherwise; the arm's name then ends in the horizon).",
         f"Episodes: the normalized score over {ms.EPISODES} evaluation episodes seeded alike for the three.",
     ])
 
