@@ -108,3 +108,14 @@ def test_the_command_line_passes_the_lookahead_to_the_reading(finished_recipe_ru
     oracle_choice.main(["--run-dir", str(finished_recipe_run), "--name", "arm-task-seed0", "--lookahead", "2"])
     record = json.loads((tmp_path / "arm-task-seed0.json").read_text())
     assert record["lookahead"] == 2 and record["episodes"] == 1 and record["steps"] == 4
+
+
+def test_the_table_orders_rows_by_task_then_lookahead():
+    def record(lookahead):
+        return {"final_score": 1.0, "lookahead": lookahead, "episodes": 1, "steps": 10, "departure_share": 0.0,
+                "returns": {"actor": [1.0], "oracle": [1.0]}, "lengths": {"actor": [10], "oracle": [10]},
+                "change": {"mean": 0.0, "up": 0}}
+    records = {("h10", "b", 0): record(10), ("h300", "a", 0): record(300), ("h100", "a", 0): record(100),
+               ("h50", "a", 0): record(50)}
+    rows = oracle_choice.table(records).splitlines()[2:]
+    assert [row.split(" | ")[0].strip("| ") for row in rows] == ["h50", "h100", "h300", "h10"]

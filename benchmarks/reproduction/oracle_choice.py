@@ -141,12 +141,13 @@ def oracle_choice(run_dir, lookahead: int | None = None, episodes: int | None = 
 
 
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
-    """One row per reading (``{(arm, task, seed): record}``), in arm, task and seed order."""
+    """One row per reading (``{(arm, task, seed): record}``), in task, lookahead, arm and seed order."""
     records = run_results(RESULTS) if records is None else records
     lines = ["| arm | task | seed | run's score | lookahead | episodes | return over the window: actor, oracle "
              "| paired change (episodes up) | steps lasted: actor, oracle | oracle departs from the actor |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for (arm, task, seed), r in sorted(records.items()):
+    order = lambda item: (item[0][1], item[1]["lookahead"], item[0][0], item[0][2])
+    for (arm, task, seed), r in sorted(records.items(), key=order):
         returns, lengths, change = r["returns"], r["lengths"], r["change"]
         lines.append(
             f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['lookahead']} | {r['episodes']} "
