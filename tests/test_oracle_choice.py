@@ -117,5 +117,15 @@ def test_the_table_orders_rows_by_task_then_lookahead():
                 "change": {"mean": 0.0, "up": 0}}
     records = {("h10", "b", 0): record(10), ("h300", "a", 0): record(300), ("h100", "a", 0): record(100),
                ("h50", "a", 0): record(50)}
-    rows = oracle_choice.table(records).splitlines()[2:]
+    rows = [line for line in oracle_choice.table(records).splitlines()[2:] if line.startswith("|")]
     assert [row.split(" | ")[0].strip("| ") for row in rows] == ["h50", "h100", "h300", "h10"]
+
+
+def test_pooled_changes_pair_every_episode_of_every_seed():
+    def record(actor, oracle):
+        return {"lookahead": 300, "returns": {"actor": actor, "oracle": oracle}}
+    records = {("a", "task", 0): record([100.0, 200.0], [150.0, 190.0]), ("a", "task", 1): record([300.0], [390.0]),
+               ("a", "other", 0): record([10.0], [5.0])}
+    assert oracle_choice.pooled_changes(records) == [
+        "- other, lookahead 300: oracle over actor -5 (-50% of the actor's return), up on 0 of 1 episodes.",
+        "- task, lookahead 300: oracle over actor +43 (+22% of the actor's return), up on 2 of 3 episodes."]

@@ -155,7 +155,24 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
             f"| {change['mean']:+.0f} ({change['up']} of {r['episodes']}) "
             f"| {statistics.median(lengths['actor']):.0f}, {statistics.median(lengths['oracle']):.0f} "
             f"| {r['departure_share']:.0%} |")
-    return "\n".join(lines)
+    return "\n".join(lines + ["", *pooled_changes(records)])
+
+
+def pooled_changes(records: dict[tuple[str, str, int], dict]) -> list[str]:
+    """Per task and lookahead, over every seed's episodes: the mean paired change of the window's return from
+    the actor's, relative to the actor's mean, and how many episodes are up."""
+    groups: dict[tuple[str, int], list[tuple[float, float]]] = {}
+    for (_, task, _), r in sorted(records.items()):
+        pairs = groups.setdefault((task, r["lookahead"]), [])
+        pairs += zip(r["returns"]["actor"], r["returns"]["oracle"])
+    lines = []
+    for (task, lookahead), pairs in sorted(groups.items()):
+        change = statistics.mean(o - a for a, o in pairs)
+        up = sum(o > a for a, o in pairs)
+        lines.append(f"- {task}, lookahead {lookahead}: oracle over actor {change:+.0f} "
+                     f"({change / statistics.mean(a for a, _ in pairs):+.0%} of the actor's return), "
+                     f"up on {up} of {len(pairs)} episodes.")
+    return lines
 
 
 def _summary(record: dict) -> str:
