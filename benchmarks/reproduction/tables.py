@@ -258,7 +258,8 @@ def oracle_choice_section() -> list[str]:
         f"acted. The first {oc.STEPS} steps of each episode, reset alike for the actor and this oracle: the mean",
         "undiscounted return over the window, the mean paired change (episodes where the oracle is up), the median",
         "number of steps each lasted (the window's length where it did not fall), and the share of the oracle's",
-        "decisions that were not the actor's own candidate.",
+        "decisions that were not the actor's own candidate. Under the table, per task and lookahead: the paired",
+        "change pooled over every seed's episodes.",
     ])
 
 
