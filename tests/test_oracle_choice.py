@@ -55,11 +55,13 @@ def test_the_lookahead_returns_are_the_rollouts_a_fresh_env_replays(chooser_of_r
     env.close()
     _, latent_actions, _ = chooser.candidates(torch.as_tensor(observation, dtype=torch.float32)[None])
     actions = chooser.actions(latent_actions)[:, 0]
-    oracle = oracle_choice.LookaheadOracle(run.task.env_id, chooser, len(actions), lookahead=8, gamma=GAMMA)
+    oracle = oracle_choice.LookaheadOracle(run.task.env_id, chooser.own_actions, len(actions), lookahead=8,
+                                           gamma=GAMMA)
     try:
         returns = oracle.returns(qpos, qvel, actions)
     finally:
         oracle.close()
+    # replayed through the chooser's own-candidate choice (the path model_selection checks against the actor)
     expected = [_replayed_return(run.task.env_id, qpos, qvel, action, chooser, 8) for action in actions]
     torch.testing.assert_close(returns, torch.tensor(expected, dtype=torch.float64), rtol=1e-6, atol=1e-6)  # a batch of 16 rounds unlike one
     assert returns.std() > 0  # the candidates' returns differ: there is something to choose

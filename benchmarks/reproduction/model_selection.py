@@ -95,11 +95,21 @@ class LatentActionChoice(nn.Module):
         self.generator = torch.Generator().manual_seed(seed)
 
     @torch.no_grad()
+    def own_latent_action(self, latent: torch.Tensor) -> torch.Tensor:
+        """The actor's latent action h_inv(z, π_g(z)) of Eq. (11)."""
+        return self.head.latent_action(latent, self.guide(latent))
+
+    @torch.no_grad()
+    def own_actions(self, observation: torch.Tensor) -> torch.Tensor:
+        """The actor's actions, without drawing candidates."""
+        return self.actions(self.own_latent_action(self.tsidm.encode_state(observation)))
+
+    @torch.no_grad()
     def candidates(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(z, z_a, predicted next latents)``, candidates first: ``(CANDIDATES, states, ·)``."""
         tsidm = self.tsidm
         latent = tsidm.encode_state(observation)
-        own = self.head.latent_action(latent, self.guide(latent))
+        own = self.own_latent_action(latent)
         noise = torch.randn((CANDIDATES - 1, *own.shape), generator=self.generator)
         latent_actions = torch.cat([own.unsqueeze(0), own + self.sigma * noise.to(own)])
         latents = latent.expand(CANDIDATES, *latent.shape)

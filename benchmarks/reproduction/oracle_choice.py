@@ -14,12 +14,11 @@ candidates by any value of that horizon can deliver.
 
 Read over the first ``STEPS`` steps of ``EPISODES`` episodes, reset alike for the actor and the oracle: the
 undiscounted return of each (the paired change and how many episodes are up), how many steps each lasted
-(the preset's actors fall after about 150-250 steps), and the share of decisions where the oracle's choice is
-not the actor's own. The window keeps the oracle affordable: each of its steps costs ``CANDIDATES`` ×
+(a fall ends the window early), and the share of decisions where the oracle's choice is not the actor's own. The window keeps the oracle affordable: each of its steps costs ``CANDIDATES`` ×
 ``LOOKAHEAD`` simulator steps.
 
-If the oracle gains far more than the target margin over BC, the candidates hold the improvement and a value
-with local resolution is what TELS lacks; if it gains little, no value can rescue a choice this local.
+If the oracle gains much, the candidates hold an improvement and a value with that resolution is what TELS
+lacks; if it gains little, no value can rescue a choice this local.
 
 Writes ``benchmarks/reproduction/results/oracle_choice/<name>.json`` (skipped if it exists unless ``--force``).
 """
@@ -109,17 +108,17 @@ def oracle_choice(run_dir, lookahead: int | None = None, episodes: int | None = 
     data, _ = make_data(cfg)  # the rows model_selection draws σ from
     gamma = float(cfg.value.gamma)
     chooser = candidate_policies(run, data)(own_action)
-    oracle = LookaheadOracle(run.task.env_id, chooser, CANDIDATES, lookahead, gamma)
+    oracle = LookaheadOracle(run.task.env_id, chooser.own_actions, CANDIDATES, lookahead, gamma)
     departures = []
 
     def actor(env, observation):
-        return chooser(torch.as_tensor(observation, dtype=torch.float32)[None])[0].numpy()
+        return chooser.own_actions(torch.as_tensor(observation, dtype=torch.float32)[None])[0].numpy()
 
     def by_oracle(env, observation):
         _, latent_actions, _ = chooser.candidates(torch.as_tensor(observation, dtype=torch.float32)[None])
         actions = chooser.actions(latent_actions)[:, 0]  # (candidates, action)
-        data = env.unwrapped.data
-        best = int(oracle.returns(data.qpos.copy(), data.qvel.copy(), actions).argmax())
+        state = env.unwrapped.data
+        best = int(oracle.returns(state.qpos.copy(), state.qvel.copy(), actions).argmax())
         departures.append(best != 0)
         return actions[best].numpy()
 
