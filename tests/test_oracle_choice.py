@@ -58,7 +58,7 @@ def test_the_lookahead_returns_are_the_rollouts_a_fresh_env_replays(chooser_of_r
     oracle = oracle_choice.LookaheadOracle(run.task.env_id, chooser.own_actions, len(actions), lookahead=8,
                                            gamma=GAMMA)
     try:
-        returns = oracle.returns(qpos, qvel, actions)
+        returns = oracle.returns(qpos, qvel, torch.as_tensor(observation, dtype=torch.float32)[None], actions)
     finally:
         oracle.close()
     # replayed through the chooser's own-candidate choice (the path model_selection checks against the actor)

@@ -35,7 +35,7 @@ from benchmarks.harness import REPO
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.model_selection import candidate_policies, CANDIDATES, own_action
 from benchmarks.reproduction.proposal_cap import load_finished_run, reading_main
-from benchmarks.reproduction.value_delivery import run_config
+from benchmarks.reproduction.value_delivery import discounted_returns, run_config
 from torchrl_tels.trainer import make_data
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "oracle_choice"
@@ -56,27 +56,15 @@ class LookaheadOracle:
             env.reset(seed=seed)
         self.policy, self.lookahead, self.gamma = policy, lookahead, gamma
 
-    def returns(self, qpos: np.ndarray, qvel: np.ndarray, first_actions: torch.Tensor) -> torch.Tensor:
-        """``(candidates,)``: the discounted return after each of ``first_actions`` from the state (qpos, qvel);
-        an episode that terminates stops there."""
-        count = len(first_actions)
-        total = torch.zeros(count, dtype=torch.float64)
-        current = torch.zeros(count, self.envs[0].observation_space.shape[0])
-        alive = torch.ones(count, dtype=torch.bool)
-        for env in self.envs[:count]:
+    def returns(self, qpos: np.ndarray, qvel: np.ndarray, observation: torch.Tensor,
+                first_actions: torch.Tensor) -> torch.Tensor:
+        """``(candidates,)``: the discounted return after each of ``first_actions`` from the state (qpos, qvel),
+        which ``observation`` describes; an episode that terminates stops there."""
+        envs = self.envs[:len(first_actions)]
+        for env in envs:
             env.set_state(qpos, qvel)
-        actions = first_actions.numpy()
-        for k in range(self.lookahead):
-            if k > 0:
-                actions = self.policy(current).numpy()
-            for i in alive.nonzero().flatten().tolist():
-                observation, reward, terminated, _, _ = self.envs[i].step(actions[i])
-                total[i] += self.gamma ** k * reward
-                current[i] = torch.as_tensor(observation, dtype=current.dtype)
-                alive[i] = not terminated
-            if not alive.any():
-                break
-        return total
+        return discounted_returns(envs, observation.expand(len(envs), -1), self.policy, self.lookahead,
+                                  self.gamma, first_actions)
 
     def close(self) -> None:
         for env in self.envs:
@@ -115,10 +103,11 @@ def oracle_choice(run_dir, lookahead: int | None = None, episodes: int | None = 
         return chooser.own_actions(torch.as_tensor(observation, dtype=torch.float32)[None])[0].numpy()
 
     def by_oracle(env, observation):
-        _, latent_actions, _ = chooser.candidates(torch.as_tensor(observation, dtype=torch.float32)[None])
+        observation = torch.as_tensor(observation, dtype=torch.float32)[None]
+        _, latent_actions, _ = chooser.candidates(observation)
         actions = chooser.actions(latent_actions)[:, 0]  # (candidates, action)
         state = env.unwrapped.data
-        best = int(oracle.returns(state.qpos.copy(), state.qvel.copy(), actions).argmax())
+        best = int(oracle.returns(state.qpos.copy(), state.qvel.copy(), observation, actions).argmax())
         departures.append(best != 0)
         return actions[best].numpy()
 

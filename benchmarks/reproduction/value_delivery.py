@@ -119,11 +119,28 @@ def recorded_returns(data, gamma: float, horizon: int | None = None) -> torch.Te
     return total
 
 
+def discounted_returns(envs, observations: torch.Tensor, policy, horizon: int, gamma: float,
+                       first_actions: torch.Tensor | None = None) -> torch.Tensor:
+    """``horizon`` steps of ``policy`` (a batch of observations → actions) in ``envs``, already in the states
+    ``observations`` describe, each stopped where it terminates: the discounted returns (float64). With
+    ``first_actions`` (one per env), the first step takes those instead of the policy's."""
+    current, total = observations.clone(), torch.zeros(len(envs), dtype=torch.float64)
+    alive = torch.ones(len(envs), dtype=torch.bool)
+    for k in range(horizon):
+        actions = (first_actions if first_actions is not None and k == 0 else policy(current)).numpy()
+        for i in alive.nonzero().flatten().tolist():
+            observation, reward, terminated, _, _ = envs[i].step(actions[i])
+            total[i] += gamma ** k * reward
+            current[i] = torch.as_tensor(observation, dtype=current.dtype)
+            alive[i] = not terminated
+        if not alive.any():
+            break
+    return total
+
+
 def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: int, gamma: float,
                     first_actions: torch.Tensor | None = None) -> torch.Tensor:
-    """From each observation's state (:func:`set_state_from_observation`), ``horizon`` steps of ``policy``
-    (a batch of observations → actions), each episode stopped where it terminates: the discounted returns.
-    With ``first_actions`` (one per observation), the first step takes those instead of the policy's."""
+    """From each observation's state (:func:`set_state_from_observation`), :func:`discounted_returns`."""
     returns = []
     for start in range(0, len(observations), CHUNK):
         chunk = observations[start:start + CHUNK]
@@ -132,20 +149,11 @@ def rollout_returns(env_id: str, observations: torch.Tensor, policy, horizon: in
             for seed, (env, observation) in enumerate(zip(envs, chunk.numpy())):
                 env.reset(seed=seed)
                 set_state_from_observation(env, observation)
-            current, total = chunk.clone(), torch.zeros(len(chunk), dtype=torch.float64)
-            alive = torch.ones(len(chunk), dtype=torch.bool)
-            for k in range(horizon):
-                given = first_actions is not None and k == 0
-                actions = (first_actions[start:start + CHUNK] if given else policy(current)).numpy()
-                for i in alive.nonzero().flatten().tolist():
-                    observation, reward, terminated, _, _ = envs[i].step(actions[i])
-                    total[i] += gamma ** k * reward
-                    current[i] = torch.as_tensor(observation, dtype=current.dtype)
-                    alive[i] = not terminated
+            given = None if first_actions is None else first_actions[start:start + CHUNK]
+            returns.append(discounted_returns(envs, chunk, policy, horizon, gamma, given))
         finally:
             for env in envs:
                 env.close()
-        returns.append(total)
     return torch.cat(returns).float()
 
 
