@@ -147,11 +147,18 @@ def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finishe
     monkeypatch.setattr(model_selection, "EPISODES", 2)
     monkeypatch.setattr(local_q, "EPISODES", 2)
     monkeypatch.setattr(local_q, "IQL_STEPS", 30)
-    record = local_q.local_q(finished_recipe_run)
-    reference = model_selection.model_selection(finished_recipe_run)
+    monkeypatch.setattr(local_q, "RETURN_Q_STEPS", 30)
+    record = local_q.local_q(finished_recipe_run, horizon=4)
+    reference = model_selection.model_selection(finished_recipe_run, horizon=4)
     # the same states, candidates and continuation: the actor's own candidate's returns agree
     assert record["actor_return"] == pytest.approx(reference["local"]["actor_return"])
     assert record["states"] == 12 and -1.0 <= record["q_rank"] <= 1.0 and record["iql_steps"] == 30
+    assert record["horizon"] == 4
+    fitted = record["return_q"]
+    assert -1.0 <= fitted["rank"] <= 1.0 and fitted["held_out_rows"] > 0 and fitted["steps"] == 30
+    # the best candidate includes the actor's own: its gain is never below 0 or the return Q's choice's
+    assert fitted["best_gain"]["median"] >= max(fitted["chosen_gain"]["median"], 0.0)
+    assert fitted["best_gain"]["mean"] >= max(fitted["chosen_gain"]["mean"], 0.0)
     assert local_q.table({("arm", "task", 0): record}).splitlines()[2].startswith("| arm | task | 0 | ")
 
 

@@ -217,10 +217,16 @@ def retrain_value(cfg, data, tsidm, action_spec, cache: Path | None = None):
     return value, losses, float(cfg.value.gamma)
 
 
+def known_returns(data, horizon: int) -> torch.Tensor:
+    """True on the rows of ``data`` whose return over the next ``horizon`` steps the data records in full: their
+    episode holds at least ``horizon`` more rows after them (one more than that return needs), or ends in a
+    termination."""
+    return terminated_episodes(data) | (steps_to_end(episode_ends(data)) >= horizon)
+
+
 def start_rows(data) -> torch.Tensor:
     """``STATES`` rows of ``data`` (a fixed draw) where the data's return over ``HORIZON`` steps is known."""
-    remaining, ended = steps_to_end(episode_ends(data)), terminated_episodes(data)
-    eligible = (ended | (remaining >= HORIZON)).nonzero().flatten()
+    eligible = known_returns(data, HORIZON).nonzero().flatten()
     return eligible[torch.randperm(len(eligible), generator=torch.Generator().manual_seed(0))[:STATES]]
 
 
@@ -244,11 +250,10 @@ def value_delivery(run_dir: Path) -> dict:
     data, _ = make_data(cfg)  # the rows in the trainer's order
     value, losses, gamma = retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
     tsidm = run.tsidm
-    remaining, ended = steps_to_end(episode_ends(data)), terminated_episodes(data)
     with torch.no_grad():
         latent = tsidm.encode_state(data["observation"])
         v_data = value(latent)
-    rtg_rows = ended | (remaining >= RTG_MARGIN)
+    rtg_rows = known_returns(data, RTG_MARGIN)
     fitted = data.clone(False)  # the rewards V was fitted to
     fitted["next", "reward"] = cfg.dataset.reward_scale * data["next", "reward"] + cfg.dataset.reward_bias
     rtg = recorded_returns(fitted, gamma)
