@@ -240,12 +240,21 @@ def model_selection_section() -> list[str]:
 
 
 def local_q_section() -> list[str]:
-    return reading_section(local_q, "Does IQL's Q order one step's alternatives where TELS's V does not?", [
-        f"`{local_q.COMMAND} --table`: IQL (torchrl's offline config, {local_q.IQL_STEPS} steps) trained on each",
+    lq = local_q
+    return reading_section(lq, "Does a Q, IQL's or one fitted to the data's returns, order one step's alternatives?", [
+        f"`{lq.COMMAND} --table`: IQL (torchrl's offline config, {lq.IQL_STEPS} steps) trained on each",
         "TELS run's own training transitions, read on the start states, candidates and returns of the local",
-        "columns above: within a state, the rank correlation over the candidates of IQL's min(Q₁, Q₂)(s, a) with",
-        "the discounted return after (the candidate's action, then the TELS actor), median over states. IQL's",
-        "score: its one evaluation at the end of training.",
+        "columns above (over the row's horizon): within a state, the rank correlation over the candidates of IQL's",
+        "min(Q₁, Q₂)(s, a) with the discounted return after (the candidate's action, then the TELS actor), median",
+        "over states. IQL's score: its one evaluation at the end of training.",
+        "",
+        f"The return Q ({lq.RETURN_Q_STEPS} steps of least squares; rows without it predate it) is fitted without",
+        "bootstrapping to the data's own discounted return over the row's horizon, on the rows that record it in",
+        f"full, leaving out {lq.HELD_OUT:.0%} of the episodes. Held-out rank: across the left-out rows, the rank",
+        "correlation of its values with their returns (does it order states?). Rank with the return after: as IQL's",
+        "(does it order one state's actions?). Return gains, over the actor's own candidate, in the environment's",
+        "reward units: of the candidate it ranks first, and of the best candidate (the one-step oracle's); median",
+        "over states (share of states above the actor's).",
     ])
 
 
