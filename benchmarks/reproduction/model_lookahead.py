@@ -1,0 +1,102 @@
+"""Does the TS-IDM's forward model, rolled several steps ahead, order one step's alternatives where one step does not?
+
+    python -m benchmarks.reproduction.model_lookahead --run-dir <run> --name <arm>-<task>-seed<k> [--horizon H]
+    python -m benchmarks.reproduction.model_lookahead --table
+
+``model_selection`` reads V at the next latent Eq. (6)'s forward model predicts for each candidate: within a
+state, its rank with the discounted return that follows the candidate (``local``: its action, then the actor)
+is near zero. ``oracle_choice`` finds that what separates the candidates is often a fall hundreds of steps
+later, which one step does not reach. The hypothesis here: the forward model, rolled further, carries the
+candidates' differences to where V can see them. From each candidate's predicted next latent, the actor
+acts in the model, z_{t+1} = z_t + h_fwd(z_t, h_inv(z_t, π_g(z_t))) (Eqs. (6) and (11), no decoding),
+and each lookahead L of ``LOOKAHEADS`` scores the candidate by V(z_L). There is no reward model: the rewards
+along the way, which can differ between one state's candidates, are not scored.
+
+The reading reports, per L, the median over ``model_selection``'s local start states of the within-state
+rank correlation of V(z_L) with the return after (``rank``). Rising with L toward the ceiling
+(``model_selection``'s nudged repeat), a model-based lookahead is worth building; flat near zero, the model's
+compounding error hides what separates the candidates. ``drift``: how far the model's latent rollout of the
+actor's own candidate has moved from its start, per L, the RMS of z_L − z₀ over the data's RMS latent step
+(a model that stays put scores its start).
+
+Writes ``benchmarks/reproduction/results/model_lookahead/<name>.json`` (skipped if it exists unless ``--force``).
+"""
+from __future__ import annotations
+
+import torch
+
+from benchmarks.harness import REPO
+from benchmarks.reproduction.latent_scale import run_results
+from benchmarks.reproduction.model_selection import (CANDIDATES, LatentActionChoice, local_returns, own_action,
+                                                     row_spearman, start_candidates)
+from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main, RUN_FILES
+from benchmarks.reproduction.value_delivery import HORIZON, retrain_value, run_config, VALUE_CACHE
+from torchrl_tels.trainer import make_data
+
+RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_lookahead"
+COMMAND = "python -m benchmarks.reproduction.model_lookahead"
+LOOKAHEADS = (1, 2, 5, 10, 20, 50, 100)
+
+
+@torch.no_grad()
+def lookahead_latents(chooser: LatentActionChoice, predicted: torch.Tensor,
+                      lookaheads: tuple[int, ...] | None = None) -> dict[int, torch.Tensor]:
+    """``{L: z_L}`` for each L of ``lookaheads`` (``LOOKAHEADS``): from the candidates' predicted next latents
+    ``predicted`` (z₁), the actor acting in the forward model, z_{t+1} = z_t + h_fwd(z_t, h_inv(z_t, π_g(z_t)))."""
+    lookaheads = LOOKAHEADS if lookaheads is None else lookaheads
+    tsidm, latent, out = chooser.tsidm, predicted, {}
+    for step in range(1, max(lookaheads) + 1):
+        if step in lookaheads:
+            out[step] = latent
+        latent = latent + tsidm.latent_forward(latent, chooser.own_latent_action(latent))
+    return out
+
+
+def model_lookahead(run_dir, horizon: int | None = None) -> dict:
+    horizon = HORIZON if horizon is None else horizon
+    run = load_finished_run(run_dir, episodes=EPISODES)
+    cfg = run_config(run_dir)
+    data, _ = make_data(cfg)  # the rows in the trainer's order
+    tsidm = run.tsidm
+    value, _, gamma = retrain_value(cfg, data, tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
+    policy, observation, latent, latent_actions, predicted = start_candidates(run, data)
+    chooser = policy(own_action)
+    local, after = local_returns(run, policy, observation, chooser.actions(latent_actions), gamma, horizon)
+    with torch.no_grad():
+        data_step = (tsidm.encode_state(data["next", "observation"])
+                     - tsidm.encode_state(data["observation"])).pow(2).sum(-1).mean().sqrt()
+    ahead = lookahead_latents(chooser, predicted[:, local])
+    start = latent[local]
+    return {"final_score": run.results["final_normalized_score_mean"], "horizon": horizon, "states": len(local),
+            "candidates": CANDIDATES, "actor_return": after[0].median().item(),
+            "lookahead": {str(steps): {"rank": row_spearman(value(z).T, after.T).nanmedian().item(),
+                                       "drift": ((z[0] - start).pow(2).sum(-1).mean().sqrt() / data_step).item()}
+                          for steps, z in ahead.items()}}
+
+
+def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
+    records = run_results(RESULTS) if records is None else records
+    steps = sorted({int(s) for r in records.values() for s in r["lookahead"]})
+    lines = ["| arm | task | seed | run's score | horizon | "
+             + " | ".join(f"rank at L = {s} (drift)" for s in steps) + " |",
+             "|---|---|---|---|---|" + "---|" * len(steps)]
+    for (arm, task, seed), r in sorted(records.items()):
+        cells = [f"{r['lookahead'][str(s)]['rank']:.2f} ({r['lookahead'][str(s)]['drift']:.1f})"
+                 if str(s) in r["lookahead"] else "—" for s in steps]
+        lines.append(f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['horizon']} | {' | '.join(cells)} |")
+    return "\n".join(lines)
+
+
+def _summary(record: dict) -> str:
+    return "rank with the return after, by lookahead: " + ", ".join(
+        f"L={steps} {reading['rank']:.2f}" for steps, reading in record["lookahead"].items())
+
+
+def main(argv=None) -> None:
+    reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=model_lookahead,
+                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"),
+                 options={"horizon": {"type": int, "help": f"steps of every return read (default {HORIZON})"}})
+
+
+if __name__ == "__main__":
+    main()
