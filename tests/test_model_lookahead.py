@@ -45,7 +45,14 @@ def test_a_reading_at_lookahead_one_is_model_selections_local_model_rank(finishe
     assert record["actor_return"] == pytest.approx(reference["local"]["actor_return"])
     assert record["lookahead"]["1"]["rank"] == pytest.approx(reference["local"]["model_rank"])
     assert all(-1.0 <= reading["rank"] <= 1.0 and reading["drift"] > 0 for reading in record["lookahead"].values())
+    # the spread against a direct computation on the run's data
+    run = load_finished_run(finished_recipe_run, episodes=1)
+    with torch.no_grad():
+        z, z_next = (run.tsidm.encode_state(run.data[key]) for key in ("observation", ("next", "observation")))
+    step = ((z_next - z) ** 2).sum(-1).mean().sqrt()
+    assert record["spread"] == pytest.approx((((z - z.mean(0)) ** 2).sum(-1).mean().sqrt() / step).item(), rel=1e-5)
     header, rule, row = model_lookahead.table({("arm", "task", 0): record}).splitlines()
     cells = dict(zip(header.strip("| ").split(" | "), row.strip("| ").split(" | ")))
     assert len(cells) == rule.count("---")
-    assert cells["rank at L = 1 (drift)"] == f"{record['lookahead']['1']['rank']:.2f} ({record['lookahead']['1']['drift']:.1f})"
+    assert cells["rank at L = 1 (drift)"] == f"{record['lookahead']['1']['rank']:.2f} ({record['lookahead']['1']['drift']:.3g})"
+    assert cells["data's latent spread"] == f"{record['spread']:.1f}"

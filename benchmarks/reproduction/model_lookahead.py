@@ -17,7 +17,8 @@ rank correlation of V(z_L) with the return after (``rank``). Rising with L towar
 (``model_selection``'s nudged repeat), a model-based lookahead is worth building; flat near zero, the model's
 compounding error hides what separates the candidates. ``drift``: how far the model's latent rollout of the
 actor's own candidate has moved from its start, per L, the RMS of z_L − z₀ over the data's RMS latent step
-(a model that stays put scores its start).
+(a model that stays put scores its start); ``spread``, the data's own RMS distance of a latent from their mean
+in the same unit, against which a drift far larger says the rollout has left the data's latent region.
 
 Writes ``benchmarks/reproduction/results/model_lookahead/<name>.json`` (skipped if it exists unless ``--force``).
 """
@@ -52,6 +53,11 @@ def lookahead_latents(chooser: LatentActionChoice, predicted: torch.Tensor,
     return out
 
 
+def rms(x: torch.Tensor) -> torch.Tensor:
+    """The root mean square of the rows' Euclidean norms."""
+    return x.pow(2).sum(-1).mean().sqrt()
+
+
 def model_lookahead(run_dir, horizon: int | None = None) -> dict:
     horizon = HORIZON if horizon is None else horizon
     run = load_finished_run(run_dir, episodes=EPISODES)
@@ -63,27 +69,30 @@ def model_lookahead(run_dir, horizon: int | None = None) -> dict:
     chooser = policy(own_action)
     local, after = local_returns(run, policy, observation, chooser.actions(latent_actions), gamma, horizon)
     with torch.no_grad():
-        data_step = (tsidm.encode_state(data["next", "observation"])
-                     - tsidm.encode_state(data["observation"])).pow(2).sum(-1).mean().sqrt()
+        data_latent = tsidm.encode_state(data["observation"])
+        data_step = rms(tsidm.encode_state(data["next", "observation"]) - data_latent)
     ahead = lookahead_latents(chooser, predicted[:, local])
     start = latent[local]
     return {"final_score": run.results["final_normalized_score_mean"], "horizon": horizon, "states": len(local),
             "candidates": CANDIDATES, "actor_return": after[0].median().item(),
+            "spread": (rms(data_latent - data_latent.mean(0)) / data_step).item(),
             "lookahead": {str(steps): {"rank": row_spearman(value(z).T, after.T).nanmedian().item(),
-                                       "drift": ((z[0] - start).pow(2).sum(-1).mean().sqrt() / data_step).item()}
+                                       "drift": (rms(z[0] - start) / data_step).item()}
                           for steps, z in ahead.items()}}
 
 
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     records = run_results(RESULTS) if records is None else records
     steps = sorted({int(s) for r in records.values() for s in r["lookahead"]})
-    lines = ["| arm | task | seed | run's score | horizon | "
+    lines = ["| arm | task | seed | run's score | horizon | data's latent spread | "
              + " | ".join(f"rank at L = {s} (drift)" for s in steps) + " |",
-             "|---|---|---|---|---|" + "---|" * len(steps)]
+             "|---|---|---|---|---|---|" + "---|" * len(steps)]
     for (arm, task, seed), r in sorted(records.items()):
-        cells = [f"{r['lookahead'][str(s)]['rank']:.2f} ({r['lookahead'][str(s)]['drift']:.1f})"
+        cells = [f"{r['lookahead'][str(s)]['rank']:.2f} ({r['lookahead'][str(s)]['drift']:.3g})"
                  if str(s) in r["lookahead"] else "—" for s in steps]
-        lines.append(f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['horizon']} | {' | '.join(cells)} |")
+        spread = f"{r['spread']:.1f}" if "spread" in r else "—"
+        lines.append(f"| {arm} | {task} | {seed} | {r['final_score']:.1f} | {r['horizon']} | {spread} "
+                     f"| {' | '.join(cells)} |")
     return "\n".join(lines)
 
 

@@ -7,8 +7,8 @@ RESULTS.md is the one place the study's numbers are published: every arm on ever
 final scores, and where a run recorded them the second-half score and the latent-scale
 diagnostics), then the tables of ``summary``, ``eval_reading``, ``budget``, ``beta_rule
 --report``, ``heldout_selection --table``, ``realization --table``, ``value_delivery --table``,
-``model_selection --table``, ``local_q --table`` and ``oracle_choice --table``, each under the command
-that prints it alone.
+``model_selection --table``, ``local_q --table``, ``oracle_choice --table`` and ``model_lookahead --table``,
+each under the command that prints it alone.
 Nothing is trained. A new result JSON goes into RESULTS.md by running this again; the file says
 it is generated and is not edited by hand.
 """
@@ -22,8 +22,8 @@ import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
 from benchmarks.reproduction import (beta_rule, budget, eval_reading, heldout_selection, latent_scale,
-                                     local_q, model_selection, oracle_choice, realization, summary,
-                                     value_delivery)
+                                     local_q, model_lookahead, model_selection, oracle_choice, realization,
+                                     summary, value_delivery)
 
 RESULTS = summary.HERE / "results"
 OUT = summary.HERE / "RESULTS.md"
@@ -161,6 +161,7 @@ def render() -> str:
         *model_selection_section(),
         *local_q_section(),
         *oracle_choice_section(),
+        *model_lookahead_section(),
     ])
 
 
@@ -269,6 +270,18 @@ def oracle_choice_section() -> list[str]:
         "number of steps each lasted (the window's length where it did not fall), and the share of the oracle's",
         "decisions that were not the actor's own candidate. Under the table, per task and lookahead: the paired",
         "change pooled over every seed's episodes.",
+    ])
+
+
+def model_lookahead_section() -> list[str]:
+    ml = model_lookahead
+    return reading_section(ml, "Does the forward model, rolled further ahead, see what one step does not?", [
+        f"`{ml.COMMAND} --table`: the start states, candidates and returns of the model-selection table's local",
+        "columns (over the row's horizon). From each candidate's predicted next latent, the actor acts in the",
+        "TS-IDM's forward model, z_{t+1} = z_t + h_fwd(z_t, h_inv(z_t, π_g(z_t))), for L − 1 more steps; within a",
+        "state, the rank correlation over the candidates of V(z_L) with the return after, median over states",
+        "(L = 1 is the model rank of the local columns). Drift: the RMS distance the actor's own candidate's latent",
+        "has moved from the start after L model steps, over the data's RMS latent step.",
     ])
 
 
