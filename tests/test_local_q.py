@@ -2,6 +2,7 @@
 where the return is a known function of state and action."""
 from __future__ import annotations
 
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -40,6 +41,8 @@ def test_held_out_episodes_are_whole_episodes_never_none_and_never_all():
         rows = held_out[data["episode"] == episode]
         assert rows.all() or not rows.any()
     assert local_q.held_out_episodes(data, 0.0).sum() == 3 and local_q.held_out_episodes(data, 1.0).sum() == 57
+    with pytest.raises(ValueError, match="1 episode"):
+        local_q.held_out_episodes(_episodes([5], terminated=[True]), 0.1)
 
 
 def test_the_return_q_learns_a_known_return_and_orders_one_states_actions():
@@ -54,6 +57,8 @@ def test_the_return_q_learns_a_known_return_and_orders_one_states_actions():
     truth = 0.3 + 2 * action[:, 0] - action[:, 1] ** 2
     rank = local_q.row_spearman(q(state, action).unsqueeze(0), truth.unsqueeze(0)).item()
     assert rank > 0.9
+    # in the return's own units, not only in order: the standardization is undone
+    assert (q(state, action) - truth).abs().mean() < 0.1 * truth.std()
     # and an untrained Q does not: the test can fail
     q0, _ = local_q.fit_return_q(data, gamma=0.99, horizon=1, steps=0)
     assert abs(local_q.row_spearman(q0(state, action).unsqueeze(0), truth.unsqueeze(0)).item()) < 0.9
@@ -74,3 +79,16 @@ def test_the_table_puts_the_return_q_under_its_columns_and_dashes_where_a_record
     assert cells[1]["return Q: rank with the return after"] == "0.07"
     assert cells[1]["return gain of the return Q's first step"] == "-1.5 (25%)"
     assert cells[1]["of the best candidate's"] == "+30.0 (90%)"
+
+
+def test_the_return_q_fits_only_rows_whose_whole_horizon_the_data_records():
+    torch.set_num_threads(1)
+    lengths, terminated = [8] * 30, [k % 2 == 0 for k in range(30)]  # every other episode times out
+    data = _episodes(lengths, terminated=terminated)
+    _, fitted = local_q.fit_return_q(data, gamma=0.9, horizon=3, steps=0)
+    # a terminated episode: all 8 rows; a timed-out one: the 5 rows with at least 3 rows after them
+    held_out = local_q.held_out_episodes(data, local_q.HELD_OUT)
+    per_episode = torch.tensor([8 if t else 5 for t in terminated])
+    held = torch.tensor([bool(held_out[data["episode"] == k].any()) for k in range(30)])
+    assert (fitted["rows"], fitted["held_out_rows"]) == (int(per_episode[~held].sum()), int(per_episode[held].sum()))
+    assert fitted["steps"] == 0

@@ -7,6 +7,7 @@ import torch
 
 from benchmarks.reproduction import model_lookahead, model_selection
 from benchmarks.reproduction.proposal_cap import load_finished_run
+from torchrl_tels.diagnostics import latent_statistics
 from torchrl_tels.modules import make_tels_actor
 
 
@@ -20,7 +21,7 @@ def test_the_lookahead_rolls_the_actor_through_the_forward_model(finished_run):
     run = finished_run
     actor = make_tels_actor(run.tsidm, run.actor[1], run.env.action_spec_unbatched)
     guide, head = run.actor[1].module, actor[-1].module
-    chooser = model_selection.LatentActionChoice(run.tsidm, guide, head, torch.full((run.data["action"].shape[-1],), 0.3),
+    chooser = model_selection.LatentActionChoice(run.tsidm, guide, head, torch.full((run.tsidm.latent_action_dim,), 0.3),
                                                  model_selection.own_action)
     _, _, predicted = chooser.candidates(run.data["observation"][:9])
     ahead = model_lookahead.lookahead_latents(chooser, predicted, lookaheads=(1, 3))
@@ -38,6 +39,7 @@ def test_a_reading_at_lookahead_one_is_model_selections_local_model_rank(finishe
     monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
     monkeypatch.setattr(model_selection, "LOCAL_STATES", 12)
     monkeypatch.setattr(model_selection, "EPISODES", 1)
+    monkeypatch.setattr(model_lookahead, "EPISODES", 1)
     monkeypatch.setattr(model_lookahead, "LOOKAHEADS", (1, 4))
     record = model_lookahead.model_lookahead(finished_recipe_run, horizon=5)
     reference = model_selection.model_selection(finished_recipe_run, horizon=5)
@@ -45,12 +47,12 @@ def test_a_reading_at_lookahead_one_is_model_selections_local_model_rank(finishe
     assert record["actor_return"] == pytest.approx(reference["local"]["actor_return"])
     assert record["lookahead"]["1"]["rank"] == pytest.approx(reference["local"]["model_rank"])
     assert all(-1.0 <= reading["rank"] <= 1.0 and reading["drift"] > 0 for reading in record["lookahead"].values())
-    # the spread against a direct computation on the run's data
+    # the spread against the diagnostics' per-dimension latent RMS: √(dims) × it, over the RMS latent step
     run = load_finished_run(finished_recipe_run, episodes=1)
     with torch.no_grad():
-        z, z_next = (run.tsidm.encode_state(run.data[key]) for key in ("observation", ("next", "observation")))
-    step = ((z_next - z) ** 2).sum(-1).mean().sqrt()
-    assert record["spread"] == pytest.approx((((z - z.mean(0)) ** 2).sum(-1).mean().sqrt() / step).item(), rel=1e-5)
+        stats = latent_statistics(run.tsidm, run.data["observation"], run.data["next", "observation"])
+    expected = stats["latent_rms"] * run.tsidm.latent_state_dim ** 0.5 / stats["latent_step_rms"]
+    assert record["spread"] == pytest.approx(expected, rel=1e-3)  # their variances differ by n / (n - 1)
     header, rule, row = model_lookahead.table({("arm", "task", 0): record}).splitlines()
     cells = dict(zip(header.strip("| ").split(" | "), row.strip("| ").split(" | ")))
     assert len(cells) == rule.count("---")

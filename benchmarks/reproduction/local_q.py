@@ -35,7 +35,7 @@ from benchmarks.baselines import train_baseline
 from benchmarks.harness import REPO
 from benchmarks.reproduction.latent_scale import run_results
 from benchmarks.reproduction.model_selection import (CANDIDATES, local_returns, own_action, row_spearman,
-                                                     start_candidates)
+                                                     start_candidates, summary_of)
 from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main
 from benchmarks.reproduction.value_delivery import HORIZON, known_returns, recorded_returns, run_config
 from torchrl_tels.trainer import make_data
@@ -62,6 +62,8 @@ def min_q(loss, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor
 def held_out_episodes(data, share: float, seed: int = 0) -> torch.Tensor:
     """True on every row of a fixed random ``share`` of the data's episodes (at least one, never all)."""
     episodes = data["episode"].unique()
+    if len(episodes) < 2:
+        raise ValueError(f"the data hold {len(episodes)} episode(s): holding whole episodes out needs at least 2")
     count = min(max(1, round(share * len(episodes))), len(episodes) - 1)
     chosen = episodes[torch.randperm(len(episodes), generator=torch.Generator().manual_seed(seed))[:count]]
     return torch.isin(data["episode"], chosen)
@@ -91,12 +93,13 @@ def fit_return_q(data, gamma: float, horizon: int, steps: int | None = None, see
     whose return is recorded in full (:func:`known_returns`) outside the :func:`held_out_episodes`; with
     the rank correlation of its values with the returns of the held-out rows."""
     steps = RETURN_Q_STEPS if steps is None else steps
-    returns, known, held_out = recorded_returns(data, gamma, horizon), known_returns(data, horizon), \
-        held_out_episodes(data, HELD_OUT)
+    returns, known = recorded_returns(data, gamma, horizon), known_returns(data, horizon)
+    held_out = held_out_episodes(data, HELD_OUT)
     fit, check = (known & ~held_out).nonzero().flatten(), (known & held_out).nonzero().flatten()
     observation, action = data["observation"].float(), data["action"].float()
-    torch.manual_seed(seed)
-    q = ReturnQ(observation[fit], action.shape[-1], returns[fit])
+    with torch.random.fork_rng():  # the initial weights follow the seed, and the caller's stream is untouched
+        torch.manual_seed(seed)
+        q = ReturnQ(observation[fit], action.shape[-1], returns[fit])
     optim = torch.optim.Adam(q.parameters(), lr=3e-4)
     generator = torch.Generator().manual_seed(seed)
     target = (returns - q.target_loc) / q.target_scale
@@ -109,7 +112,8 @@ def fit_return_q(data, gamma: float, horizon: int, steps: int | None = None, see
     with torch.no_grad():
         held_out_rank = row_spearman(q(observation[check], action[check]).unsqueeze(0),
                                      returns[check].unsqueeze(0)).item()
-    return q.requires_grad_(False), {"rows": len(fit), "held_out_rows": len(check), "held_out_rank": held_out_rank}
+    return q.requires_grad_(False), {"rows": len(fit), "held_out_rows": len(check), "steps": steps,
+                                     "held_out_rank": held_out_rank}
 
 
 def local_q(run_dir, horizon: int | None = None) -> dict:
@@ -128,17 +132,15 @@ def local_q(run_dir, horizon: int | None = None) -> dict:
                                          progress=False, return_policy=True, return_loss=True)
     q = min_q(loss, starts, first_actions)
     return_q, fitted = fit_return_q(data, gamma, horizon, seed=int(run.results["seed"]))
-    chosen = return_q(starts, first_actions).argmax(0)
-    gain = lambda x: {"median": (x - after[0]).median().item(), "mean": (x - after[0]).mean().item(),
-                      "share_positive": (x > after[0]).float().mean().item()}
+    fitted_q = return_q(starts, first_actions)
+    chosen = fitted_q.argmax(0)
     return {"final_score": run.results["final_normalized_score_mean"], "horizon": horizon, "states": len(local),
             "candidates": CANDIDATES, "iql_steps": IQL_STEPS, "iql_score": results["final_normalized_score_mean"],
             "actor_return": after[0].median().item(),
             "q_rank": row_spearman(q.T, after.T).nanmedian().item(),
-            "return_q": fitted | {"steps": RETURN_Q_STEPS,
-                                  "rank": row_spearman(return_q(starts, first_actions).T, after.T).nanmedian().item(),
-                                  "chosen_gain": gain(after[chosen, torch.arange(len(local))]),
-                                  "best_gain": gain(after.amax(0))}}
+            "return_q": fitted | {"rank": row_spearman(fitted_q.T, after.T).nanmedian().item(),
+                                  "chosen_gain": summary_of(after[chosen, torch.arange(len(local))] - after[0]),
+                                  "best_gain": summary_of(after.amax(0) - after[0])}}
 
 
 def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:

@@ -47,15 +47,16 @@ def lookahead_latents(chooser: LatentActionChoice, predicted: torch.Tensor,
     lookaheads = LOOKAHEADS if lookaheads is None else lookaheads
     tsidm, latent, out = chooser.tsidm, predicted, {}
     for step in range(1, max(lookaheads) + 1):
+        if step > 1:
+            latent = latent + tsidm.latent_forward(latent, chooser.own_latent_action(latent))
         if step in lookaheads:
             out[step] = latent
-        latent = latent + tsidm.latent_forward(latent, chooser.own_latent_action(latent))
     return out
 
 
-def rms(x: torch.Tensor) -> torch.Tensor:
-    """The root mean square of the rows' Euclidean norms."""
-    return x.pow(2).sum(-1).mean().sqrt()
+def rms_distance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """The root mean square over rows of the Euclidean distance between ``x`` and ``y``."""
+    return (x - y).pow(2).sum(-1).mean().sqrt()
 
 
 def model_lookahead(run_dir, horizon: int | None = None) -> dict:
@@ -70,14 +71,14 @@ def model_lookahead(run_dir, horizon: int | None = None) -> dict:
     local, after = local_returns(run, policy, observation, chooser.actions(latent_actions), gamma, horizon)
     with torch.no_grad():
         data_latent = tsidm.encode_state(data["observation"])
-        data_step = rms(tsidm.encode_state(data["next", "observation"]) - data_latent)
+    data_step = run.data_step_rms  # the data's RMS latent step, the diagnostics' latent_step_rms
     ahead = lookahead_latents(chooser, predicted[:, local])
     start = latent[local]
     return {"final_score": run.results["final_normalized_score_mean"], "horizon": horizon, "states": len(local),
             "candidates": CANDIDATES, "actor_return": after[0].median().item(),
-            "spread": (rms(data_latent - data_latent.mean(0)) / data_step).item(),
+            "spread": rms_distance(data_latent, data_latent.mean(0)).item() / data_step,
             "lookahead": {str(steps): {"rank": row_spearman(value(z).T, after.T).nanmedian().item(),
-                                       "drift": (rms(z[0] - start) / data_step).item()}
+                                       "drift": rms_distance(z[0], start).item() / data_step}
                           for steps, z in ahead.items()}}
 
 

@@ -144,7 +144,8 @@ def at_random(seed: int = 1):
     return lambda latent, latent_actions, predicted: torch.randint(CANDIDATES, (latent.shape[0],), generator=generator)
 
 
-def _summary_of(x: torch.Tensor) -> dict:
+def summary_of(x: torch.Tensor) -> dict:
+    """Median, mean and the share above 0 of ``x``."""
     return {"median": x.median().item(), "mean": x.mean().item(), "share_positive": (x > 0).float().mean().item()}
 
 
@@ -241,17 +242,17 @@ def model_selection(run_dir, horizon: int | None = None) -> dict:
         "candidates": CANDIDATES, "scale": SCALE, "value_spread": spread,
         "model_rank": {"median": model_rank.nanmedian().item(), "rows": int(model_rank.isfinite().sum())},
         "tsym_rank": {"median": tsym_rank.nanmedian().item(), "rows": int(tsym_rank.isfinite().sum())},
-        "predicted": _summary_of((predicted_value[chosen, states] - predicted_value[0]) / spread),
-        "chosen": _summary_of(gain(reached[chosen, states])),
-        "best": _summary_of(gain(reached.amax(0))),
-        "other": _summary_of(gain(reached[1])),
+        "predicted": summary_of((predicted_value[chosen, states] - predicted_value[0]) / spread),
+        "chosen": summary_of(gain(reached[chosen, states])),
+        "best": summary_of(gain(reached.amax(0))),
+        "other": summary_of(gain(reached[1])),
         "local": {"states": len(local), "value_rank": row_spearman(reached[:, local].T, after.T).nanmedian().item(),
                   "model_rank": row_spearman(predicted_value[:, local].T, after.T).nanmedian().item(),
                   "reward_rank": row_spearman(rewards[:, local].T, after.T).nanmedian().item(),
                   "reward_and_value_rank": row_spearman((rewards + gamma * reached)[:, local].T,
                                                         after.T).nanmedian().item(),
                   "repeat_rank": row_spearman(after_nudged.T, after.T).nanmedian().item(), "nudge": NUDGE,
-                  "actor_return": after[0].median().item(), "chosen_gain": _summary_of(local_gain),
+                  "actor_return": after[0].median().item(), "chosen_gain": summary_of(local_gain),
                   # how much the alternatives' returns differ, in V's units, against V's spread over the data
                   "return_spread": (cfg.dataset.reward_scale * after.std(0) / spread).median().item()},
         "horizon_return": {name: returns.median().item() for name, returns in returns_over_horizon.items()}

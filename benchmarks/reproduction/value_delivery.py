@@ -219,8 +219,9 @@ def retrain_value(cfg, data, tsidm, action_spec, cache: Path | None = None):
 
 def known_returns(data, horizon: int) -> torch.Tensor:
     """True on the rows of ``data`` whose return over the next ``horizon`` steps the data records in full: their
-    episode holds at least ``horizon`` more rows after them (one more than that return needs), or ends in a
-    termination."""
+    episode holds at least ``horizon`` more rows after them (one more than that return needs: the rule
+    :func:`start_rows` has always drawn from, kept so that its draw and the readings made on it stay as they
+    are), or ends in a termination."""
     return terminated_episodes(data) | (steps_to_end(episode_ends(data)) >= horizon)
 
 
