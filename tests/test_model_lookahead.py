@@ -39,7 +39,6 @@ def test_a_reading_at_lookahead_one_is_model_selections_local_model_rank(finishe
     monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
     monkeypatch.setattr(model_selection, "LOCAL_STATES", 12)
     monkeypatch.setattr(model_selection, "EPISODES", 1)
-    monkeypatch.setattr(model_lookahead, "EPISODES", 1)
     monkeypatch.setattr(model_lookahead, "LOOKAHEADS", (1, 4))
     record = model_lookahead.model_lookahead(finished_recipe_run, horizon=5)
     reference = model_selection.model_selection(finished_recipe_run, horizon=5)

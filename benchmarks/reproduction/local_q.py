@@ -34,8 +34,8 @@ from torchrl.modules import MLP
 from benchmarks.baselines import train_baseline
 from benchmarks.harness import REPO
 from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.model_selection import (CANDIDATES, local_returns, own_action, row_spearman,
-                                                     start_candidates, summary_of)
+from benchmarks.reproduction.model_selection import (CANDIDATES, HORIZON_OPTION, local_returns, own_action,
+                                                     row_spearman, start_candidates, summary_of)
 from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main
 from benchmarks.reproduction.value_delivery import HORIZON, known_returns, recorded_returns, run_config
 from torchrl_tels.trainer import make_data
@@ -172,8 +172,7 @@ def _summary(record: dict) -> str:
 
 def main(argv=None) -> None:
     reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=local_q,
-                 table=table, summary=_summary,
-                 options={"horizon": {"type": int, "help": f"steps of every return read (default {HORIZON})"}})
+                 table=table, summary=_summary, options=HORIZON_OPTION)
 
 
 if __name__ == "__main__":

@@ -28,11 +28,10 @@ import torch
 
 from benchmarks.harness import REPO
 from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.model_selection import (CANDIDATES, LatentActionChoice, local_returns, own_action,
-                                                     row_spearman, start_candidates)
-from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main, RUN_FILES
-from benchmarks.reproduction.value_delivery import HORIZON, retrain_value, run_config, VALUE_CACHE
-from torchrl_tels.trainer import make_data
+from benchmarks.reproduction.model_selection import (CANDIDATES, HORIZON_OPTION, LatentActionChoice, local_returns,
+                                                     own_action, read_candidates, row_spearman)
+from benchmarks.reproduction.proposal_cap import reading_main, RUN_FILES
+from benchmarks.reproduction.value_delivery import HORIZON
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_lookahead"
 COMMAND = "python -m benchmarks.reproduction.model_lookahead"
@@ -61,16 +60,11 @@ def rms_distance(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 def model_lookahead(run_dir, horizon: int | None = None) -> dict:
     horizon = HORIZON if horizon is None else horizon
-    run = load_finished_run(run_dir, episodes=EPISODES)
-    cfg = run_config(run_dir)
-    data, _ = make_data(cfg)  # the rows in the trainer's order
-    tsidm = run.tsidm
-    value, _, gamma = retrain_value(cfg, data, tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
-    policy, observation, latent, latent_actions, predicted = start_candidates(run, data)
+    run, _, data, value, gamma, policy, observation, latent, latent_actions, predicted = read_candidates(run_dir)
     chooser = policy(own_action)
     local, after = local_returns(run, policy, observation, chooser.actions(latent_actions), gamma, horizon)
     with torch.no_grad():
-        data_latent = tsidm.encode_state(data["observation"])
+        data_latent = run.tsidm.encode_state(data["observation"])
     data_step = run.data_step_rms  # the data's RMS latent step, the diagnostics' latent_step_rms
     ahead = lookahead_latents(chooser, predicted[:, local])
     start = latent[local]
@@ -104,8 +98,7 @@ def _summary(record: dict) -> str:
 
 def main(argv=None) -> None:
     reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=model_lookahead,
-                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"),
-                 options={"horizon": {"type": int, "help": f"steps of every return read (default {HORIZON})"}})
+                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"), options=HORIZON_OPTION)
 
 
 if __name__ == "__main__":

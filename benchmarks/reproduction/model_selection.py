@@ -46,15 +46,18 @@ Writes ``benchmarks/reproduction/results/model_selection/<name>.json`` (skipped 
 from __future__ import annotations
 
 import statistics
+from typing import Callable, NamedTuple
 
 import gymnasium as gym
 import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
 
 from benchmarks.harness import REPO
 from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main, RUN_FILES
+from benchmarks.reproduction.proposal_cap import EPISODES, FinishedRun, load_finished_run, reading_main, RUN_FILES
 from benchmarks.reproduction.realization import step_from_observations
 from benchmarks.reproduction.value_delivery import (HORIZON, retrain_value, rollout_returns, run_config,
                                                     start_rows, VALUE_CACHE)
@@ -65,6 +68,8 @@ from torchrl_tels.trainer import make_data
 RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_selection"
 COMMAND = "python -m benchmarks.reproduction.model_selection"
 CANDIDATES = 16
+#: ``reading_main``'s option for the readings of these candidates' returns
+HORIZON_OPTION = {"horizon": {"type": int, "help": f"steps of every return read (default {HORIZON})"}}
 SCALE = 0.5
 LOCAL_STATES = 200
 NUDGE = 0.01
@@ -178,6 +183,30 @@ def start_candidates(run, data):
     return policy, observation, *policy(own_action).candidates(observation)
 
 
+class CandidateReading(NamedTuple):
+    """What a reading of one finished run's candidates starts from: the run and its config, its training rows
+    in the trainer's order, its V (:func:`value_delivery.retrain_value`, cached in the run folder) with γ, and
+    :func:`start_candidates`."""
+    run: FinishedRun
+    cfg: DictConfig
+    data: TensorDictBase
+    value: Callable[[torch.Tensor], torch.Tensor]
+    gamma: float
+    policy: Callable[..., LatentActionChoice]
+    observation: torch.Tensor
+    latent: torch.Tensor
+    latent_actions: torch.Tensor
+    predicted: torch.Tensor
+
+
+def read_candidates(run_dir) -> CandidateReading:
+    run = load_finished_run(run_dir, episodes=EPISODES)
+    cfg = run_config(run_dir)
+    data, _ = make_data(cfg)
+    value, _, gamma = retrain_value(cfg, data, run.tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
+    return CandidateReading(run, cfg, data, value, gamma, *start_candidates(run, data))
+
+
 def local_returns(run, policy, observation: torch.Tensor, candidate_actions: torch.Tensor, gamma: float,
                   horizon: int | None = None):
     """From the first ``LOCAL_STATES`` start states: their indices and :func:`returns_after` with the candidates'
@@ -189,12 +218,8 @@ def local_returns(run, policy, observation: torch.Tensor, candidate_actions: tor
 
 def model_selection(run_dir, horizon: int | None = None) -> dict:
     horizon = HORIZON if horizon is None else horizon
-    run = load_finished_run(run_dir, episodes=EPISODES)
-    cfg = run_config(run_dir)
-    data, _ = make_data(cfg)  # the rows in the trainer's order
+    run, cfg, data, value, gamma, policy, observation, latent, latent_actions, predicted = read_candidates(run_dir)
     tsidm = run.tsidm
-    value, _, gamma = retrain_value(cfg, data, tsidm, run.env.action_spec_unbatched, run_dir / VALUE_CACHE)
-    policy, observation, latent, latent_actions, predicted = start_candidates(run, data)
     chooser = policy(own_action)
     head, candidate_actions = chooser.head, chooser.actions(latent_actions)  # (candidates, states, ·)
     with torch.no_grad():
@@ -326,8 +351,7 @@ def _summary(record: dict) -> str:
 
 def main(argv=None) -> None:
     reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=model_selection,
-                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"),
-                 options={"horizon": {"type": int, "help": f"steps of every return read (default {HORIZON})"}})
+                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"), options=HORIZON_OPTION)
 
 
 if __name__ == "__main__":
