@@ -1,7 +1,7 @@
 """TELS offline training, Algorithm 1 of the paper, end to end.
 
     python recipes/tels_offline.py                      # hopper-medium-v2 10k, the default
-    python recipes/tels_offline.py budget=smoke         # about 20 seconds, the same configuration
+    python recipes/tels_offline.py budget=smoke         # about 20 seconds: the default domain, small nets, few steps
     python recipes/tels_offline.py domain=paper budget=paper   # the paper as written
     python recipes/tels_offline.py run_dir=runs/x resume=true  # continue a killed run
     python recipes/tels_offline.py 'seeds=[0,1,2]'        # three seeds in one process, stacked

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Creates .venv beside this checkout (once) and installs torchrl_tels into it,
+# Creates .venv in this checkout (once) and installs torchrl_tels into it,
 # with the test and maze extras.
 # torch is installed first, pinned to the CPU build: a bare `torch` requirement
 # on a machine without torch pulls a multi-GB CUDA build.
