@@ -36,6 +36,7 @@ PRESET_ARMS = {task: "alpha1" if task.startswith("halfcheetah") else "alpha1_epy
 LONG_STAGE2 = ("long20k_preset", ["tsidm.steps=3000", "optim.steps=20000", "eval.interval=1000", "eval.episodes=10"])
 LONG_STAGE1 = ("tsidm9k", ["tsidm.steps=9000", "optim.steps=5000", "eval.interval=500", "eval.episodes=10"])
 PAPER_BUDGET = ("paper_budget_preset", ["budget=paper"])
+LONG_BC = GRID / "long50k" / "bc"  # BC at 50k policy steps (run_grid --steps 50000), the grid's longest
 EPISODE_STEPS = 1000  # eval.max_steps, the recipe's default: an episode shorter than this ended in a fall
 
 
@@ -81,10 +82,14 @@ def render() -> str:
     return "\n".join(lines)
 
 
-def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict]) -> str:
+def _mean_final(runs: dict[int, dict]) -> str:
+    return f"{statistics.mean(r['final_normalized_score_mean'] for r in runs.values()):.1f}" if runs else "—"
+
+
+def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict], long_bc_runs: dict[int, dict]) -> str:
     """One task's row: the paper's reading (last 10 of 20 evaluations), the second-half mean, the best
     evaluation and its step, how many evaluations ended every episode in a fall, BC in the same harness
-    at the study's shared budget, Table 1's TELS score, and the final score's distance to the issue's
+    at the study's shared budget and at 50k policy steps, Table 1's TELS score, and the final score's distance to the issue's
     target (Table 1's mean minus its std; negative: short of it)."""
     finals = [runs[s]["final_normalized_score_mean"] for s in sorted(runs)]
     evaluations = [e for s in sorted(runs) for e in runs[s]["evaluations"]]
@@ -92,10 +97,9 @@ def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict])
     all_fell = sum(max(e["lengths"]) < EPISODE_STEPS for e in evaluations)
     mean, std = PAPER_TABLE1[task]["tels"]
     final = statistics.mean(finals)
-    bc = f"{statistics.mean(r['final_normalized_score_mean'] for r in bc_runs.values()):.1f}" if bc_runs else "—"
     cells = [task, ", ".join(map(str, sorted(runs))), ", ".join(f"{f:.1f}" for f in finals),
              f"{statistics.mean(r['second_half_score_mean'] for r in runs.values()):.1f}",
-             f"{best['score']:.1f} ({best['step'] // 1000}k)", f"{all_fell} of {len(evaluations)}", bc,
+             f"{best['score']:.1f} ({best['step'] // 1000}k)", f"{all_fell} of {len(evaluations)}", _mean_final(bc_runs), _mean_final(long_bc_runs),
              f"{mean:g} ± {std:g}", f"{final - (mean - std):+.1f}"]
     return "| " + " | ".join(cells) + " |"
 
@@ -103,12 +107,14 @@ def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict])
 def render_paper_budget() -> str:
     """The table of :func:`paper_budget_row` over the sets the arm has run."""
     lines = ["| task | seeds | final: last 10 of 20 | second-half mean | best evaluation (step) "
-             "| evaluations where every episode fell | BC, shared budget | TELS, Table 1 | final − (mean − std) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| evaluations where every episode fell | BC, shared budget | BC, 50k steps | TELS, Table 1 "
+             "| final − (mean − std) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for task in TASKS:
         runs = seed_results(HERE / "results" / PAPER_BUDGET[0] / task, lambda r: r["budget"] == PAPER_BUDGET[1])
         if runs:
-            lines.append(paper_budget_row(task, runs, seed_results(GRID / "bc" / task, on_grid_budget)))
+            lines.append(paper_budget_row(task, runs, seed_results(GRID / "bc" / task, on_grid_budget),
+                                          seed_results(LONG_BC / task, lambda r: True)))
     return "\n".join(lines)
 
 

@@ -152,7 +152,7 @@ def render() -> str:
         "The preset at the paper's whole budget (`budget=paper`: about 36k TS-IDM and 100k policy steps, 20",
         "evaluations of 10 episodes), read as Table 1 is, by the last 10 of the 20 evaluations. \"Every episode",
         "fell\": evaluations whose episodes all ended before 1000 steps. BC: the baseline grid's runs at the",
-        "shared budget. The last column is the final score's distance to the issue's target, Table 1's TELS",
+        "shared budget and at 50k policy steps (`benchmarks/results/long50k`; \"—\": not run). The last column is the final score's distance to the issue's target, Table 1's TELS",
         "mean minus its std (negative: short of it).",
         "",
         budget.render_paper_budget(),
