@@ -17,7 +17,8 @@ def test_paper_budget_row_reads_the_runs_against_table1():
     scores = [float(i) for i in range(20)]            # best: the last evaluation, at 100k
     lengths = [[1000, 300]] * 5 + [[200, 150]] * 15   # 15 evaluations in which every episode fell
     bc = {0: {"final_normalized_score_mean": 30.0}, 1: {"final_normalized_score_mean": 40.0}}
-    cells = [c.strip() for c in budget.paper_budget_row(TASK, {0: _run(0, scores, lengths)}, bc, {0: bc[1]}).strip("|").split("|")]
+    row = budget.paper_budget_row(TASK, {0: _run(0, scores, lengths)}, bc, {0: bc[1]})
+    cells = [c.strip() for c in row.strip("|").split("|")]
     mean, std = PAPER_TABLE1[TASK]["tels"]
     final = statistics.mean(range(10, 20))  # 14.5
     assert cells[0] == TASK and cells[1] == "0"

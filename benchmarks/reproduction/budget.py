@@ -89,8 +89,8 @@ def _mean_final(runs: dict[int, dict]) -> str:
 def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict], long_bc_runs: dict[int, dict]) -> str:
     """One task's row: the paper's reading (last 10 of 20 evaluations), the second-half mean, the best
     evaluation and its step, how many evaluations ended every episode in a fall, BC in the same harness
-    at the study's shared budget and at 50k policy steps, Table 1's TELS score, and the final score's distance to the issue's
-    target (Table 1's mean minus its std; negative: short of it)."""
+    at the study's shared budget and at 50k policy steps, Table 1's TELS score, and the final score's
+    distance to the issue's target (Table 1's mean minus its std; negative: short of it)."""
     finals = [runs[s]["final_normalized_score_mean"] for s in sorted(runs)]
     evaluations = [e for s in sorted(runs) for e in runs[s]["evaluations"]]
     best = max(evaluations, key=lambda e: e["score"])
@@ -99,7 +99,8 @@ def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict],
     final = statistics.mean(finals)
     cells = [task, ", ".join(map(str, sorted(runs))), ", ".join(f"{f:.1f}" for f in finals),
              f"{statistics.mean(r['second_half_score_mean'] for r in runs.values()):.1f}",
-             f"{best['score']:.1f} ({best['step'] // 1000}k)", f"{all_fell} of {len(evaluations)}", _mean_final(bc_runs), _mean_final(long_bc_runs),
+             f"{best['score']:.1f} ({best['step'] // 1000}k)", f"{all_fell} of {len(evaluations)}",
+             _mean_final(bc_runs), _mean_final(long_bc_runs),
              f"{mean:g} ± {std:g}", f"{final - (mean - std):+.1f}"]
     return "| " + " | ".join(cells) + " |"
 
