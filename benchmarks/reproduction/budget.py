@@ -18,7 +18,7 @@ on halfcheetah, which ran on the same AMD machine):
 
 Then the preset at the paper's whole budget (``paper_budget_preset``, ``budget=paper``: about 36k
 TS-IDM and 100k policy steps, 20 evaluations), read as the paper reads Table 1, by the last 10 of
-its 20 evaluations, against the TELS row of Table 1 and the issue's target, the paper's mean minus
+its 20 evaluations, against the TELS row of Table 1 and the study's target, the paper's mean minus
 its std (:func:`paper_budget_row`).
 
 Nothing is trained here.
@@ -90,7 +90,7 @@ def paper_budget_row(task: str, runs: dict[int, dict], bc_runs: dict[int, dict],
     """One task's row: the paper's reading (last 10 of 20 evaluations), the second-half mean, the best
     evaluation and its step, how many evaluations ended every episode in a fall, BC in the same harness
     at the study's shared budget and at 50k policy steps, Table 1's TELS score, and the final score's
-    distance to the issue's target (Table 1's mean minus its std; negative: short of it)."""
+    distance to the study's target (Table 1's mean minus its std; negative: short of it)."""
     finals = [runs[s]["final_normalized_score_mean"] for s in sorted(runs)]
     evaluations = [e for s in sorted(runs) for e in runs[s]["evaluations"]]
     best = max(evaluations, key=lambda e: e["score"])
