@@ -112,9 +112,9 @@ def render_paper_budget() -> str:
              "| final − (mean − std) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for task in TASKS:
-        runs = seed_results(HERE / "results" / PAPER_BUDGET[0] / task, lambda r: r["budget"] == PAPER_BUDGET[1])
-        if runs:
-            lines.append(paper_budget_row(task, runs, seed_results(GRID / "bc" / task, on_grid_budget),
+        paper_runs = runs(*PAPER_BUDGET, task)
+        if paper_runs:
+            lines.append(paper_budget_row(task, paper_runs, seed_results(GRID / "bc" / task, on_grid_budget),
                                           seed_results(LONG_BC / task, lambda r: True)))
     return "\n".join(lines)
 
