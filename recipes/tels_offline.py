@@ -132,7 +132,7 @@ def train(cfg: DictConfig) -> dict:
                              initial=start, total=cfg.policy.steps, mininterval=2.0)
         for step in progress:
             # Lines 7-8: V by expectile regression, then the guide against the updated V.
-            value_losses, guide_losses = stage2.update(cfg, stage2.buffer.sample(), step)
+            value_losses, guide_losses = stage2.update(stage2.buffer.sample(), step)
             if (step + 1) % cfg.logger.log_interval == 0:
                 stage2.check_finite()
                 scalars = {f"value/{k}": v.item() for k, v in value_losses.items()}
@@ -146,7 +146,7 @@ def train(cfg: DictConfig) -> dict:
                     run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats,
                                                     monitor=monitor))
                 logger.log_scalars(evaluation_scalars(run.evaluations[-1]), step + 1)
-                progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}")
+                progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}", eval_s=f"{run.wall['eval_s']:.0f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()
                 run.step = step + 1
@@ -239,7 +239,7 @@ def train_seeds(cfg: DictConfig) -> dict:
         progress = tqdm.tqdm(range(start, cfg.policy.steps), desc=f"stage 2: value + guide, {len(seeds)} seeds",
                              file=sys.stdout, initial=start, total=cfg.policy.steps, mininterval=2.0)
         for step in progress:
-            value_losses, guide_losses = stage2.update(cfg, stage2.sample(), step)
+            value_losses, guide_losses = stage2.update(stage2.sample(), step)
             if (step + 1) % cfg.logger.log_interval == 0:
                 stage2.check_finite()
                 for k, (seed, seed_run) in enumerate(zip(seeds, seed_runs)):
@@ -257,7 +257,8 @@ def train_seeds(cfg: DictConfig) -> dict:
                             seed_run.evaluations.append(evaluate(c, stage.actor, env, task, step + 1,
                                                                  stage.latent_stats, monitor=monitor))
                         logger.log_scalars(evaluation_scalars(seed_run.evaluations[-1], f"seed{c.seed}/"), step + 1)
-                progress.set_postfix(score=f"{sum(r.evaluations[-1]['score'] for r in seed_runs) / len(seeds):.1f}")
+                progress.set_postfix(score=f"{sum(r.evaluations[-1]['score'] for r in seed_runs) / len(seeds):.1f}",
+                                     eval_s=f"{run.wall['eval_s']:.0f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()
                 run.step = step + 1

@@ -78,6 +78,17 @@ elif mode == "inf_grad":  # at stage-2 step `at` the guide loss stays finite but
             out.set(key, out.get(key) + torch.sqrt(weight - weight.detach()).sum())  # + 0, d/dw = inf
         return out
     objectives.TSymGuideLoss.forward = inf_grad
+elif mode == "nan_reward":  # the batch of stage-2 step `at` carries a NaN reward: Eq. (8)'s target is NaN
+    from torchrl.data import TensorDictReplayBuffer
+    sample = TensorDictReplayBuffer.sample
+    def nan_sample(self, *args, **kwargs):
+        batch = sample(self, *args, **kwargs)
+        if "latent" in batch.keys():  # stage 2's buffer holds the encoded data
+            calls[0] += 1
+            if calls[0] == int(at) + 1:
+                batch.set(("next", "reward"), batch.get(("next", "reward")) * float("nan"))
+        return batch
+    TensorDictReplayBuffer.sample = nan_sample
 else:
     raise SystemExit(f"unknown mode {mode}")
 sys.argv = [recipe, *sys.argv[4:]]
@@ -287,6 +298,32 @@ def test_nan_loss_stops_run_and_keeps_last_good_checkpoint(tmp_path, driver):
     state = load_training_state(run_dir / "state.pt")  # loading also proves the file is whole
     assert (state["stage"], state["step"]) == ("policy", 48)
     assert not (run_dir / "results.json").exists()
+
+
+def test_compiled_run_stops_at_a_nan_loss_naming_term_and_step(tmp_path, driver):
+    """With compile.compile=true the NaN stop still names the term and the step: the watch reads
+    the compiled step's outputs. The NaN comes from the data, as the compiled step sees it."""
+    run_dir = tmp_path / "run"
+    proc = run(run_dir, "compile.compile=true", base=FAST, driver=(driver, "nan_reward", "60"), check=False)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "error: stage 2 (value): loss_value became nan at step 60; the run stops here "
+        "and the last good checkpoint is kept unchanged."
+    )
+    assert (load_training_state(run_dir / "state.pt")["step"]) == 48
+
+
+def test_compiled_run_killed_then_resumed_matches_an_uninterrupted_one(tmp_path, driver):
+    """compile.compile=true: a run killed right after its stage-2 checkpoint at step 48 and resumed
+    (compiling afresh) ends exactly as the same compiled run uninterrupted."""
+    reference_dir, run_dir = tmp_path / "reference", tmp_path / "run"
+    run(reference_dir, "compile.compile=true", base=FAST)
+    proc = run(run_dir, "compile.compile=true", base=FAST, driver=(driver, "kill_after_checkpoint", "policy,0,48"),
+               check=False)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
+    proc = run(run_dir, "compile.compile=true", "resume=true", base=FAST)
+    assert f"resuming {run_dir} at policy step 48" in proc.stdout
+    assert_same_run(run_dir, reference_dir)
 
 
 def test_non_finite_weights_are_never_checkpointed(tmp_path, driver):

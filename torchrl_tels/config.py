@@ -27,7 +27,7 @@ __all__ = [
 
 #: Top-level config entries that may differ between a run and its ``resume=true``
 #: continuation: they decide where and how a run is logged, not what it computes.
-RESUMABLE_KEYS = ("run_dir", "resume", "threads", "device", "logger", "checkpoint")
+RESUMABLE_KEYS = ("run_dir", "resume", "threads", "device", "logger", "checkpoint", "compile")
 
 #: Options added after checkpoints were first written, as (section, key): (the value that
 #: reproduces how a checkpoint without the option behaved, when the option matters at all).
@@ -188,9 +188,24 @@ def validate_config(cfg) -> None:
         value = OmegaConf.select(cfg, path)
         if value not in allowed:
             raise ConfigError(f"{path} must be one of {allowed}, got {value!r}.")
+    _check_compile(cfg)
     if cfg.guide.mode == "stochastic" and _number(cfg, "guide.reach_weight") > 0:
         raise ConfigError("guide.reach_weight applies to the deterministic guide (Eq. 9) only; "
                           "guide.mode=stochastic needs guide.reach_weight=0.")
+
+
+def _check_compile(cfg) -> None:
+    from torchrl_tels.compile import COMPILE_MODES
+
+    for path in ("compile.compile", "compile.cudagraphs"):
+        if not isinstance(OmegaConf.select(cfg, path), bool):
+            raise ConfigError(f"{path} must be true or false, got {OmegaConf.select(cfg, path)!r}.")
+    if cfg.compile.mode not in COMPILE_MODES:
+        raise ConfigError(f"compile.mode must be one of {COMPILE_MODES}, got {cfg.compile.mode!r}.")
+    if cfg.compile.cudagraphs and resolve_device(cfg.device).type != "cuda":
+        raise ConfigError(f"compile.cudagraphs=true records CUDA graphs, but the run computes on "
+                          f"{resolve_device(cfg.device)} (device={cfg.device}); use compile.cudagraphs=false "
+                          f"or a CUDA device.")
 
 
 def native_bf16_supported() -> bool:

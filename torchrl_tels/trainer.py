@@ -15,13 +15,14 @@ here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import tqdm
@@ -29,6 +30,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
+from torchrl_tels.compile import capturable_adam, compile_update, precision_context
 from torchrl_tels.config import check_same_run, resolve_device, training_config
 from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
@@ -75,7 +77,40 @@ MONITOR_QUANTILE = 0.99
 
 def autocast(cfg):
     """bf16 matmuls on the run's device (CPU or CUDA) when ``precision=bf16``; fp32 otherwise."""
-    return torch.autocast(resolve_device(cfg.device).type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+    return precision_context(resolve_device(cfg.device), cfg.precision)()
+
+
+def compile_options(cfg) -> dict:
+    """The ``compile`` group as :func:`~torchrl_tels.compile.compile_update`'s keywords; all off for the
+    config of a run saved before the group existed."""
+    return {"compile": bool(OmegaConf.select(cfg, "compile.compile", default=False)),
+            "cudagraphs": bool(OmegaConf.select(cfg, "compile.cudagraphs", default=False)),
+            "mode": OmegaConf.select(cfg, "compile.mode", default=None)}
+
+
+def make_train_step(loss_module, optim: torch.optim.Optimizer, amp=contextlib.nullcontext):
+    """One train step of ``loss_module`` as a function of the batch: forward (under ``amp``), backward
+    of the sum of its ``loss_*`` entries (summed over seeds for a stacked loss), optimizer step.
+
+    Returns the detached losses; :func:`~torchrl_tels.compile.compile_update` can take it whole.
+    ``torch.compile`` leaves the optimizer to its fused kernel (:func:`torch.compiler.disable`): tracing
+    Adam costs more per step than it saves (BENCHMARKS.md, "Compiled updates"), and a CUDA graph
+    records the fused kernel all the same. The gradients are cleared after the step, so the step
+    starts from none."""
+
+    @torch.compiler.disable
+    def apply_gradients():
+        optim.step()
+        optim.zero_grad(set_to_none=True)
+
+    def train_step(batch: TensorDictBase) -> TensorDictBase:
+        with amp():
+            losses = loss_module(batch)
+        sum_losses(losses).sum().backward()  # a stacked loss: the seeds share no parameter
+        apply_gradients()
+        return losses.detach()
+
+    return train_step
 
 
 def tsidm_steps(cfg, n_transitions: int) -> int:
@@ -277,7 +312,8 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     device = resolve_device(cfg.device)
     tsidm = make_tsidm(cfg, data).to(device)
     loss_module = make_tsidm_loss(cfg, tsidm, beta)
-    optim = torch.optim.Adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
+    optim = capturable_adam(loss_module.parameters(), lr=t.lr, weight_decay=t.weight_decay,
+                            capturable=compile_options(cfg)["cudagraphs"])
     buffer = make_offline_replay_buffer(data, t.batch_size, device=device)
     watch = FiniteWatch(f"stage 1 (TS-IDM, beta={beta:g})")
     total = tsidm_steps(cfg, len(data))
@@ -286,15 +322,13 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
         run.restore(loss=loss_module, optim=optim)
         start, history, tail = run.step, run.tsidm_history, run.modules["tail"]
 
+    train_step = compile_update(make_train_step(loss_module, optim, precision_context(device, cfg.precision)),
+                                **compile_options(cfg))
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
                          initial=start, total=total, mininterval=2.0)
     for step in progress:
-        with autocast(cfg):
-            losses = loss_module(buffer.sample())
+        losses = train_step(buffer.sample())
         watch.update(losses, step)
-        optim.zero_grad()
-        sum_losses(losses).backward()
-        optim.step()
         if step >= int(0.9 * total):  # int(): runs under 10 steps still keep their last step
             tail.append(torch.stack([losses["ell_total"], losses["ell_sum"]]))
         if (step + 1) % cfg.logger.log_interval == 0:
@@ -341,23 +375,21 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
             losses.append(make_tsidm_loss(cfg, tsidms[-1], beta))
             buffers.append(make_offline_replay_buffer(data, t.batch_size, device=device))
     stack = StackedLoss(losses)
-    optim = torch.optim.Adam(stack.trainable(), lr=t.lr, weight_decay=t.weight_decay, fused=True)
+    optim = capturable_adam(stack.trainable(), lr=t.lr, weight_decay=t.weight_decay,
+                            capturable=compile_options(cfg)["cudagraphs"])
     watch = FiniteWatch(f"stage 1 (TS-IDM, beta={beta:g})", entries=[f"seed {seed}" for seed in seeds])
     start, tail, histories = 0, [], [{key: [] for key in TSIDM_TERMS} for _ in seeds]
     if run.resumes("tsidm"):
         run.restore(loss=stack, optim=optim, seed_rng=rng)
         start, histories, tail = run.step, run.modules["histories"], run.modules["tail"]
 
+    train_step = compile_update(make_train_step(stack, optim, precision_context(device, cfg.precision)),
+                                **compile_options(cfg))
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}, {len(seeds)} seeds",
                          file=sys.stdout, initial=start, total=total, mininterval=2.0)
     for step in progress:
-        batch = sample_seeds(buffers, rng)
-        with autocast(cfg):
-            out = stack(batch)
+        out = train_step(sample_seeds(buffers, rng))
         watch.update(out, step)
-        optim.zero_grad()
-        sum_losses(out).sum().backward()  # the seeds share no parameter: each gets its own gradient
-        optim.step()
         if step >= int(0.9 * total):
             tail.append(torch.stack([out["ell_total"], out["ell_sum"]], -1))
         if (step + 1) % cfg.logger.log_interval == 0:
@@ -479,27 +511,25 @@ class Stage2:
     latent_stats: dict
     monitor: TSymConsistencyMonitor
     device: torch.device = torch.device("cpu")
+    amp: Callable = contextlib.nullcontext  # the loss forward passes' precision (precision_context)
+    compile: dict = field(default_factory=dict)  # compile_update's switches (compile_options)
     value_watch: FiniteWatch = field(default_factory=lambda: FiniteWatch("stage 2 (value)"))
     guide_watch: FiniteWatch = field(default_factory=lambda: FiniteWatch("stage 2 (guide)"))
 
-    def update(self, cfg, batch: TensorDictBase, step: int):
-        """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V.
+    def __post_init__(self):
+        self.train_step = compile_update(make_stage2_step(
+            make_train_step(self.value_loss, self.value_optim, self.amp),
+            make_train_step(self.guide_loss, self.guide_optim, self.amp),
+            self.target_updater.step), **self.compile)
+
+    def update(self, batch: TensorDictBase, step: int):
+        """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V; then the target V.
 
         A non-finite loss is recorded without a host synchronization; :meth:`check_finite`
         raises for it, naming the term and the step."""
-        with autocast(cfg):
-            value_losses = self.value_loss(batch)
+        value_losses, guide_losses = self.train_step(batch)
         self.value_watch.update(value_losses, step)
-        self.value_optim.zero_grad()
-        value_losses["loss_value"].backward()
-        self.value_optim.step()
-        with autocast(cfg):
-            guide_losses = self.guide_loss(batch)
         self.guide_watch.update(guide_losses, step)
-        self.guide_optim.zero_grad()
-        sum_losses(guide_losses).backward()
-        self.guide_optim.step()
-        self.target_updater.step()
         return value_losses, guide_losses
 
     def check_finite(self) -> None:
@@ -514,7 +544,20 @@ class Stage2:
 
 def _adam_options(optim: torch.optim.Optimizer) -> dict:
     group = optim.param_groups[0]
-    return {key: group[key] for key in ("lr", "betas", "eps", "weight_decay", "fused")}
+    return {key: group[key] for key in ("lr", "betas", "eps", "weight_decay", "fused", "capturable")}
+
+
+def make_stage2_step(value_step: Callable, guide_step: Callable, update_target: Callable) -> Callable:
+    """Stage 2's whole train step (Algorithm 1, lines 7-8): V by Eq. (8), then the guide against the
+    updated V (Eq. 9/10), then the target V; returns both losses."""
+
+    def train_step(batch: TensorDictBase):
+        value_losses = value_step(batch)
+        guide_losses = guide_step(batch)
+        update_target()
+        return value_losses, guide_losses
+
+    return train_step
 
 
 @dataclass
@@ -546,26 +589,23 @@ class StackedStage2:
         self.target_weight = 1 - first.target_updater.eps  # torchrl's SoftUpdate: target.lerp_(source, 1 - eps)
         self.value_watch = FiniteWatch("stage 2 (value)", entries=self.labels)
         self.guide_watch = FiniteWatch("stage 2 (guide)", entries=self.labels)
+        self.train_step = compile_update(make_stage2_step(
+            make_train_step(self.value, self.value_optim, first.amp),
+            make_train_step(self.guide, self.guide_optim, first.amp),
+            self.update_target), **first.compile)
 
     def sample(self) -> TensorDictBase:
         return sample_seeds([stage.buffer for stage in self.stages], self.rng)
 
-    def update(self, cfg, batch: TensorDictBase, step: int):
-        """:meth:`Stage2.update` for every seed at once; the losses carry a leading seed dimension."""
-        with autocast(cfg):
-            value_losses = self.value(batch)
-        self.value_watch.update(value_losses, step)
-        self.value_optim.zero_grad()
-        value_losses["loss_value"].sum().backward()
-        self.value_optim.step()
-        with autocast(cfg):
-            guide_losses = self.guide(batch)
-        self.guide_watch.update(guide_losses, step)
-        self.guide_optim.zero_grad()
-        sum_losses(guide_losses).sum().backward()
-        self.guide_optim.step()
+    def update_target(self) -> None:
         params = self.value.params
         params["target_value_network_params"].data.lerp_(params["value_network_params"].data, self.target_weight)
+
+    def update(self, batch: TensorDictBase, step: int):
+        """:meth:`Stage2.update` for every seed at once; the losses carry a leading seed dimension."""
+        value_losses, guide_losses = self.train_step(batch)
+        self.value_watch.update(value_losses, step)
+        self.guide_watch.update(guide_losses, step)
         return value_losses, guide_losses
 
     def check_finite(self) -> None:
@@ -613,19 +653,23 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     )
     guide_loss.make_value_estimator(gamma=cfg.value.gamma)
     actor_options = {"reencode_proposal": g.reencode_proposal, "inverse_dropout": g.act_with_dropout}
+    compiled = compile_options(cfg)
     return Stage2(
         buffer=buffer,
         value_loss=value_loss,
         guide_loss=guide_loss,
         target_updater=SoftUpdate(value_loss, tau=cfg.value.target_update_rate),
-        value_optim=torch.optim.Adam(value_loss.value_network_params.values(True, True), lr=cfg.value.lr, fused=True),
-        guide_optim=torch.optim.Adam(guide_loss.parameters(), lr=g.lr, fused=True),
+        value_optim=capturable_adam(value_loss.value_network_params.values(True, True), lr=cfg.value.lr,
+                                    capturable=compiled["cudagraphs"]),
+        guide_optim=capturable_adam(guide_loss.parameters(), lr=g.lr, capturable=compiled["cudagraphs"]),
         actor=make_tels_actor(tsidm, guide, action_spec, **actor_options).to(device),
         guide=guide,
         actor_options=actor_options,
         latent_stats=latent_stats,
         monitor=monitor,
         device=device,
+        amp=precision_context(device, cfg.precision),
+        compile=compiled,
     )
 
 
@@ -648,7 +692,7 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     actor.eval()
     returns, lengths, behaviour, monitored = [], [], [], []
     for rollout in rollout_episodes(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
-                                    seed=cfg.seed * 100_000 + step):
+                                    seed=cfg.seed * 100_000 + step, compile_options=compile_options(cfg)):
         returns.append(rollout["next", "reward"].sum().item())
         lengths.append(rollout.shape[-1])
         behaviour.append(rollout_statistics(rollout))

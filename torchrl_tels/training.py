@@ -52,36 +52,40 @@ class FiniteWatch:
     def __init__(self, stage: str, entries: Sequence[str] | None = None):
         self.stage = stage
         self.entries = list(entries) if entries else None
-        self.first_bad: dict[str, torch.Tensor] = {}
-        self.values: dict[str, torch.Tensor] = {}
-        self.where: dict[str, torch.Tensor] = {}
+        self.keys: list[str] | None = None  # the watched ``loss_*`` terms, in the losses' order
+        self.first_bad: torch.Tensor | None = None  # per term: the first bad step, -1 while finite
+        self.values: torch.Tensor | None = None  # per term: the first bad value
+        self.where: torch.Tensor | None = None  # per term: the entry it appeared in
 
     def update(self, losses: TensorDictBase, step: int) -> None:
-        for key, value in losses.items():
-            if not key.startswith("loss_"):
-                continue
-            flat = value.detach().reshape(-1)
-            bad_entries = ~torch.isfinite(flat)
-            bad = bad_entries.any()
-            index = bad_entries.float().argmax()  # the first non-finite entry (0 when none is)
-            first = self.first_bad.get(key)
-            if first is None:
-                first = self.first_bad[key] = torch.full((), -1, dtype=torch.long, device=value.device)
-                self.values[key] = torch.zeros((), dtype=value.dtype, device=value.device)
-                self.where[key] = torch.zeros((), dtype=torch.long, device=value.device)
-            newly = bad & (first < 0)
-            self.first_bad[key] = torch.where(newly, torch.full_like(first, step), first)
-            self.values[key] = torch.where(newly, flat[index], self.values[key])
-            self.where[key] = torch.where(newly, index, self.where[key])
+        # One stacked test for every term: a handful of kernels per step whatever the number of terms,
+        # which matters once the step itself is compiled.
+        if self.keys is None:
+            self.keys = [key for key in losses.keys() if key.startswith("loss_")]
+        values = torch.stack([losses.get(key).detach().reshape(-1).float() for key in self.keys])
+        bad = ~torch.isfinite(values)  # [terms, entries]
+        index = bad.to(torch.uint8).argmax(-1)  # the first non-finite entry of each term (0 when none is)
+        if self.first_bad is None:
+            self.first_bad = torch.full((len(self.keys),), -1, dtype=torch.long, device=values.device)
+            self.values = torch.zeros(len(self.keys), device=values.device)
+            self.where = torch.zeros(len(self.keys), dtype=torch.long, device=values.device)
+        newly = bad.any(-1) & (self.first_bad < 0)
+        self.first_bad = torch.where(newly, step, self.first_bad)
+        self.values = torch.where(newly, values.gather(-1, index[:, None]).squeeze(-1), self.values)
+        self.where = torch.where(newly, index, self.where)
 
     def check(self) -> None:
-        for key, first in self.first_bad.items():
-            if first.item() >= 0:
-                entry = f" ({self.entries[self.where[key].item()]})" if self.entries else ""
-                raise NonFiniteLossError(
-                    f"{self.stage}: {key}{entry} became {self.values[key].item()} at step {first.item()}; the run "
-                    f"stops here and the last good checkpoint is kept unchanged."
-                )
+        if self.first_bad is None:
+            return
+        first_bad = self.first_bad.tolist()
+        bad = [k for k, first in enumerate(first_bad) if first >= 0]
+        if bad:
+            k = min(bad, key=lambda term: first_bad[term])  # the earliest; ties go to the first term
+            entry = f" ({self.entries[self.where[k].item()]})" if self.entries else ""
+            raise NonFiniteLossError(
+                f"{self.stage}: {self.keys[k]}{entry} became {self.values[k].item()} at step {first_bad[k]}; the "
+                f"run stops here and the last good checkpoint is kept unchanged."
+            )
 
 
 def _tensors(obj: Any, prefix: str = ""):

@@ -67,7 +67,7 @@ def run(task: str, seed: int, size: int, steps: int, interval: int, tsidm_steps:
     stage2 = make_stage2(cfg, data, tsidm, env.action_spec_unbatched)
     evaluations = []
     for step in tqdm.trange(steps, desc="stage 2", file=sys.stdout, mininterval=5.0):
-        _, guide_losses = stage2.update(cfg, stage2.buffer.sample(), step)
+        _, guide_losses = stage2.update(stage2.buffer.sample(), step)
         if (step + 1) % interval == 0:
             reading = evaluate(cfg, stage2.actor, env, env_task, step + 1, stage2.latent_stats)
             evaluations.append({"step": step + 1, "score": reading["score"], "scores": reading["scores"],
