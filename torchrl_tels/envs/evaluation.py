@@ -1,7 +1,8 @@
 """Deterministic policy evaluation in a gymnasium env through TorchRL (paper §4 protocol)."""
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -10,6 +11,7 @@ from torchrl.envs import EnvBase, GymEnv, GymWrapper
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_tels.compile import compile_update
 from torchrl_tels.errors import TaskError
 
 __all__ = ["make_eval_env", "make_eval_envs", "evaluate_policy", "rollout_episodes", "PolicyOnDevice"]
@@ -77,6 +79,7 @@ def rollout_episodes(
     *,
     seed: int,
     max_steps: int = 1000,
+    compile_options: Mapping[str, Any] | None = None,
 ) -> Iterator[TensorDictBase]:
     """Yields the rollout TensorDict of each of ``episodes`` deterministic episodes.
 
@@ -90,11 +93,12 @@ def rollout_episodes(
     are one env's, up to the float rounding of a batched matrix product (which a
     chaotic body can amplify over a long episode). The policy may live on another
     device than the env: its inputs are moved to it and its outputs back
-    (:class:`PolicyOnDevice`).
+    (:class:`PolicyOnDevice`), whose policy call ``compile_options`` (the keywords of
+    :func:`~torchrl_tels.compile.compile_update`) can compile or record as a CUDA graph.
     """
     env_device, policy_device = env.device or torch.device("cpu"), _device_of(policy)
     if policy_device != env_device and not isinstance(policy, PolicyOnDevice):
-        policy = PolicyOnDevice(policy, policy_device, env_device)
+        policy = PolicyOnDevice(policy, policy_device, env_device, **(compile_options or {}))
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         if not env.batch_size:
             for episode in range(episodes):
@@ -130,15 +134,28 @@ class PolicyOnDevice(TensorDictModuleBase):
     tensordict's device, the step's tensors stay on the GPU, and a batched rollout that stops when all
     copies are done then merges them with a done mask on the CPU ("Expected all tensors to be on the
     same device").
+
+    Each step crosses between the devices once each way: the keys the policy reads travel as one
+    consolidated tensordict (one copy), and so do the keys it writes. ``compile_options`` (the keywords of
+    :func:`~torchrl_tels.compile.compile_update`) compile the policy call or record it as a CUDA graph,
+    whose fixed input shape a batch of evaluation envs keeps for a whole rollout.
     """
 
-    def __init__(self, policy: TensorDictModuleBase, device: torch.device, env_device: torch.device):
+    def __init__(self, policy: TensorDictModuleBase, device: torch.device, env_device: torch.device,
+                 **compile_options: Any):
         super().__init__()
         self.policy, self.device, self.env_device = policy, torch.device(device), torch.device(env_device)
         self.in_keys, self.out_keys = list(policy.in_keys), list(policy.out_keys)
+        self._act = compile_update(self._act_on_device, **compile_options)
+
+    def _act_on_device(self, inputs: TensorDictBase) -> TensorDictBase:
+        return self.policy(inputs).select(*self.out_keys)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        return self.policy(tensordict.to(self.device)).to(self.env_device)
+        # consolidate(): every key in one buffer, moved by one copy (and locked, so the policy's writes need unlock_)
+        inputs = tensordict.select(*self.in_keys).consolidate().to(self.device).unlock_()
+        outputs = self._act(inputs).consolidate().to(self.env_device)
+        return tensordict.update(outputs).to(self.env_device)  # no copy: every tensor is there already
 
 
 def _device_of(policy) -> torch.device:
