@@ -6,7 +6,7 @@ from benchmarks.gpu_table import render, seconds, stage_progress
 BARS = ("stage 1: TS-IDM beta=1:  10%|#         | 300/3000 [00:05<00:45, 60.00it/s]\r"
         "stage 1: TS-IDM beta=1: 100%|##########| 3000/3000 [00:24<00:00, 125.0it/s, loss=0.05]\n"
         "latent scale: RMS spread 1.0\n"
-        "stage 2: value + guide, 5 seeds:  18%|#8        | 880/5000 [01:11<03:50, 17.89it/s, score=43.1]\r")
+        "stage 2: value + guide, 5 seeds:  18%|#8        | 880/5000 [01:11<03:50, 17.89it/s, score=43.1, eval_s=12]\r")
 
 
 def test_seconds_reads_minutes_and_hours():
@@ -31,7 +31,7 @@ def test_render_uses_the_last_run_of_a_name_and_a_finished_run_s_score(tmp_path)
     rows = [line for line in table.splitlines() if line.startswith("| study")]
     # 3000 / 24 = 125.0 and 880 / 71 = 12.39...: the means over the elapsed time, not tqdm's smoothed rate
     assert rows[0].split(" | ")[1:] == ["0", "95", "125.0 (3,000/3,000 steps in 24 s)",
-                                        "12.4 (880/5,000 steps in 71 s)", "47.3 |"]
+                                        "12.4 (880/5,000 steps in 71 s)", "12", "47.3 |"]
     assert rows[1].split(" | ")[1:3] == ["124", "150"] and rows[1].endswith("did not finish |")
 
 
@@ -44,4 +44,17 @@ def test_bars_without_a_rate_or_a_description_and_hours_elapsed():
 def test_a_check_that_stopped_early_renders_without_its_files(tmp_path):
     table = render(tmp_path)
     assert "machine: not run" in table and "there: not run" in table
+    assert "Not measured: the check wrote no compile_speed.json." in table
     assert not [line for line in table.splitlines() if line.startswith("| study")]
+
+
+def test_speed_table_gives_each_stage_s_steps_per_second_by_mode(tmp_path):
+    figures = {"args": {"device": "cuda", "seeds": "1", "steps": "200", "repeats": "3", "warmup": "30"},
+               "stages": {"tsidm": {"eager": {"steps_per_s": 250.4, "warmup_s": 0.4},
+                                    "cudagraphs": {"steps_per_s": 1999.6, "warmup_s": 2.2}},
+                          "policy": {"eager": {"steps_per_s": 100.0, "warmup_s": 0.3}}}}
+    (tmp_path / "compile_speed.json").write_text(json.dumps(figures))
+    table = render(tmp_path)
+    assert "| stage | eager | `compile.cudagraphs=true` |" in table
+    assert "| 1 (TS-IDM) | 250 (0 s) | 2,000 (2 s) |" in table
+    assert "| 2 (V + guide) | 100 (0 s) | — |" in table
