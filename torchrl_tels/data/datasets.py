@@ -21,10 +21,11 @@ Sources understood by :func:`load_dataset`:
 * a D4RL-style ``.npz`` or ``.hdf5`` file (``observations``, ``actions``,
   ``rewards``, ``next_observations``, ``terminals``, optional ``timeouts``);
 * an in-memory mapping with the same keys;
-* the dataset shipped inside the package (``"hopper-medium-v2-10k"``, also
-  reachable as ``"embedded"``/``"default"``);
-* a name of a file in the workplace's shared dataset folder
-  (``"halfcheetah-medium-v2-10k"``, see :func:`shared_datasets_dir`);
+* a dataset shipped inside the package: the five 10k sets of the paper's
+  Table 1 (:data:`EMBEDDED_DATASETS`; ``"embedded"``/``"default"`` name
+  ``"hopper-medium-v2-10k"``);
+* a name of a file in the workplace's shared dataset folder (see
+  :func:`shared_datasets_dir`);
 * a Minari dataset id (``"mujoco/hopper/medium-v0"``), read with Minari's own
   episode API from ``MINARI_DATASETS_PATH`` and downloaded when Minari's remote
   support is installed.
@@ -55,6 +56,7 @@ __all__ = [
     "DatasetError",
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
+    "EMBEDDED_DATASETS",
     "load_dataset",
     "minari_dataset_to_tensordict",
     "embedded_dataset_path",
@@ -74,8 +76,18 @@ D4RL_REQUIRED_KEYS: tuple[str, ...] = (
 #: Optional D4RL key marking time-limit truncations.
 D4RL_OPTIONAL_KEYS: tuple[str, ...] = ("timeouts",)
 
-#: Name of the dataset shipped in ``torchrl_tels/data/assets``.
+#: The default dataset, reached by the aliases ``"embedded"``/``"default"``.
 EMBEDDED_DATASET = "hopper-medium-v2-10k"
+#: Datasets shipped in ``torchrl_tels/data/assets`` (``<name>.npz``): the
+#: reduced-size D4RL samples of the paper's Table 1, so that every Table 1 task
+#: runs from an installed package alone (attribution in ``ATTRIBUTION.md``).
+EMBEDDED_DATASETS: tuple[str, ...] = (
+    "hopper-medium-v2-10k",
+    "hopper-medium-replay-v2-10k",
+    "halfcheetah-medium-v2-10k",
+    "walker2d-medium-v2-10k",
+    "antmaze-umaze-v0-10k",
+)
 _EMBEDDED_ALIASES = ("embedded", "default")
 
 #: Environment variable overriding the location of the shared dataset folder.
@@ -110,8 +122,8 @@ def embedded_dataset_path(name: str = EMBEDDED_DATASET) -> Traversable:
     """Return the packaged asset for ``name`` as an importlib resource.
 
     Args:
-        name: dataset name (file stem in ``torchrl_tels/data/assets``), or one
-            of the aliases ``"embedded"`` / ``"default"``.
+        name: one of :data:`EMBEDDED_DATASETS`, or one of the aliases
+            ``"embedded"`` / ``"default"``.
 
     Returns:
         The resource; use :func:`importlib.resources.as_file` to get a
@@ -122,11 +134,20 @@ def embedded_dataset_path(name: str = EMBEDDED_DATASET) -> Traversable:
     """
     if name in _EMBEDDED_ALIASES:
         name = EMBEDDED_DATASET
+    # Only known names: an arbitrary string must not become a path inside the
+    # installed package.
+    if name not in EMBEDDED_DATASETS:
+        raise DatasetError(
+            f"No embedded dataset named {name!r}; shipped: {list(EMBEDDED_DATASETS)}."
+        )
     resource = importlib.resources.files("torchrl_tels.data").joinpath(
         "assets", f"{name}.npz"
     )
-    if not resource.is_file():
-        raise DatasetError(f"No embedded dataset named {name!r}.")
+    if not resource.is_file():  # an install that lost its package data
+        raise DatasetError(
+            f"The embedded dataset {name!r} is missing from this installation "
+            f"({resource}); reinstall torchrl-tels."
+        )
     return resource
 
 
@@ -166,7 +187,7 @@ def recorded_env_id(source: DatasetSource) -> str | None:
     Lets a user's own dataset be evaluated where it was collected. Prefers the
     dataset's evaluation env over its collection env, as Minari does.
     """
-    if not isinstance(source, str) or Path(source).suffix in (".npz", ".hdf5", ".h5"):
+    if not isinstance(source, str) or Path(source).suffix in _FILE_SUFFIXES:
         return None
     try:
         local_path = _minari_local_path(source)
@@ -203,8 +224,9 @@ def load_dataset(
     1. an existing file (``.npz``, ``.hdf5``/``.h5``), or a string that looks
        like a path (has one of these suffixes or starts with ``.``, ``~``,
        ``/``), which must then exist;
-    2. the embedded dataset (``"hopper-medium-v2-10k"``, ``"embedded"``,
-       ``"default"``);
+    2. a dataset shipped with the package (:data:`EMBEDDED_DATASETS`, e.g.
+       ``"walker2d-medium-v2-10k"``; ``"embedded"``/``"default"`` for
+       ``"hopper-medium-v2-10k"``);
     3. ``<shared_datasets_dir()>/d4rl-10k/<source>.npz``;
     4. a Minari dataset id, local under ``MINARI_DATASETS_PATH`` (default
        ``~/.minari/datasets``), downloaded if ``download`` and Minari's remote
@@ -270,13 +292,12 @@ def load_dataset(
         raise DatasetError(f"Dataset file not found: {str(path)!r}.")
     looked_at.append(f"file {str(path)!r}")
 
-    try:
-        resource = embedded_dataset_path(source)
-    except DatasetError:
-        looked_at.append(f"embedded datasets {[EMBEDDED_DATASET, *_EMBEDDED_ALIASES]}")
-    else:
-        with importlib.resources.as_file(resource) as resource_path:
+    # A shipped name never falls through to the shared folder: an install that
+    # lost its package data should say so, not load whatever else is around.
+    if source in EMBEDDED_DATASETS or source in _EMBEDDED_ALIASES:
+        with importlib.resources.as_file(embedded_dataset_path(source)) as resource_path:
             return _load_d4rl_file(resource_path, source_name=source)
+    looked_at.append(f"embedded datasets {[*EMBEDDED_DATASETS, *_EMBEDDED_ALIASES]}")
 
     shared = shared_datasets_dir()
     if shared is None:
