@@ -23,7 +23,7 @@ Setups:
     regions are 0.8 m squares on 5 cells spread along the shortest path
     between them (the corridors are 1 m wide).
 ``antmaze-umaze``
-    ``../shared/datasets/d4rl-10k/antmaze-umaze-v0-10k.npz`` with POR's box
+    ``antmaze-umaze-v0-10k`` (shipped with the package) with POR's box
     x in [5, 10], y in [2, 7] (D4RL coordinates), evaluated in the D4RL
     antmaze-umaze task.
 
@@ -112,7 +112,7 @@ SETUPS = {"pointmaze-medium": _pointmaze_medium, "antmaze-umaze": _antmaze_umaze
 
 
 def ensure_dataset(setup: Setup) -> None:
-    """Makes the PointMaze data the first time (about 10 s); the AntMaze data is in ../shared."""
+    """Makes the PointMaze data the first time (about 10 s); the AntMaze data ships with the package."""
     if setup.name != "pointmaze-medium":
         return
     import minari

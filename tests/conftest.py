@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import importlib.resources
 import subprocess
 import sys
 from pathlib import Path
@@ -8,22 +9,15 @@ import numpy as np
 import pytest
 import torch
 
+from torchrl_tels.data import embedded_dataset_path
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_D4RL = REPO_ROOT.parent / "shared" / "datasets" / "d4rl-10k"
 RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
-
-
-def shared_file(name: str) -> Path:
-    """Path of a file in ../shared/datasets/d4rl-10k, or skip the test with the reason."""
-    path = SHARED_D4RL / name
-    if not path.exists():
-        pytest.skip(f"{path} is absent (../shared is not beside this checkout)")
-    return path
 
 
 @pytest.fixture
 def hopper_arrays():
-    with np.load(shared_file("hopper-medium-v2-10k.npz")) as data:
+    with importlib.resources.as_file(embedded_dataset_path("hopper-medium-v2-10k")) as path, np.load(path) as data:
         return {key: data[key] for key in data.files}
 
 

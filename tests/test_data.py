@@ -12,9 +12,12 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs import ObservationNorm, RewardScaling
 
+import torchrl_tels.data.datasets as datasets_module
 from torchrl_tels.data import (
+    EMBEDDED_DATASETS,
     PAPER_SUBSET_SIZES,
     DatasetError,
+    embedded_dataset_path,
     delete_regions,
     load_dataset,
     make_offline_replay_buffer,
@@ -32,13 +35,22 @@ requires_shared = pytest.mark.skipif(
     reason=f"shared D4RL subsets not found at {SHARED_D4RL} (../shared absent)",
 )
 
-SHARED_NAMES = [
+# The paper's Table 1 sets, written out rather than read from EMBEDDED_DATASETS
+# so that dropping one from the package fails here.
+TABLE1_NAMES = [
     "hopper-medium-v2-10k",
     "hopper-medium-replay-v2-10k",
     "halfcheetah-medium-v2-10k",
     "walker2d-medium-v2-10k",
     "antmaze-umaze-v0-10k",
 ]
+ASSETS = importlib.resources.files("torchrl_tels.data") / "assets"
+
+
+def asset_arrays(name: str) -> dict[str, np.ndarray]:
+    """The shipped file's arrays, read with NumPy alone (not through load_dataset)."""
+    with importlib.resources.as_file(ASSETS / f"{name}.npz") as path, np.load(path) as raw:
+        return {key: raw[key] for key in raw.files}
 
 
 def make_arrays(num: int = 7, obs_dim: int = 3, act_dim: int = 2, seed: int = 0):
@@ -86,12 +98,11 @@ def episode_lengths(data) -> list[int]:
 
 
 # --------------------------------------------------------------------------- #
-# Layout and values on the shared D4RL subsets
+# Layout and values on the shipped D4RL subsets
 # --------------------------------------------------------------------------- #
-@requires_shared
-@pytest.mark.parametrize("name", SHARED_NAMES)
-def test_shared_layout_and_values_match_file(name):
-    raw = np.load(SHARED_D4RL / f"{name}.npz")
+@pytest.mark.parametrize("name", TABLE1_NAMES)
+def test_shipped_layout_and_values_match_file(name):
+    raw = asset_arrays(name)
     data = load_dataset(name)
     num = len(raw["observations"])
 
@@ -126,7 +137,6 @@ def test_shared_layout_and_values_match_file(name):
     )
 
 
-@requires_shared
 @pytest.mark.parametrize(
     "name, num_episodes, num_terminated, num_truncated",
     [
@@ -139,8 +149,8 @@ def test_shared_layout_and_values_match_file(name):
         ("antmaze-umaze-v0-10k", 105, 94, 11),
     ],
 )
-def test_shared_episode_boundaries(name, num_episodes, num_terminated, num_truncated):
-    raw = np.load(SHARED_D4RL / f"{name}.npz")
+def test_shipped_episode_boundaries(name, num_episodes, num_terminated, num_truncated):
+    raw = asset_arrays(name)
     data = load_dataset(name)
     episode = data["episode"]
     terminated = data["next", "terminated"][:, 0]
@@ -178,6 +188,47 @@ def test_embedded_dataset_matches_asset():
         data = load_dataset(name)
         np.testing.assert_array_equal(data["observation"].numpy(), observations)
         assert int(data["episode"].max()) + 1 == 21
+
+
+def test_shipped_names_are_the_asset_files():
+    shipped = sorted(p.name.removesuffix(".npz") for p in ASSETS.iterdir() if p.name.endswith(".npz"))
+    assert shipped == sorted(EMBEDDED_DATASETS) == sorted(TABLE1_NAMES)
+
+
+@pytest.mark.parametrize("name", TABLE1_NAMES)
+def test_shipped_name_loads_without_shared_folder(name, monkeypatch):
+    # No shared folder anywhere, and fail loudly if load_dataset even asks for it.
+    monkeypatch.setenv("TORCHRL_TELS_SHARED_DATASETS", "/nonexistent/shared/datasets")
+
+    def no_shared():
+        raise AssertionError("a shipped name must not consult the shared folder")
+
+    monkeypatch.setattr(datasets_module, "shared_datasets_dir", no_shared)
+    data = load_dataset(name)
+
+    shared_file = SHARED_D4RL / f"{name}.npz"
+    if not shared_file.is_file():
+        pytest.skip(f"{shared_file} absent: loaded, but nothing to compare with")
+    with np.load(shared_file) as raw:
+        np.testing.assert_array_equal(data["observation"].numpy(), raw["observations"])
+        np.testing.assert_array_equal(data["action"].numpy(), raw["actions"])
+        np.testing.assert_array_equal(data["next", "observation"].numpy(), raw["next_observations"])
+        np.testing.assert_array_equal(data["next", "reward"].numpy()[:, 0], raw["rewards"])
+        np.testing.assert_array_equal(data["next", "terminated"].numpy()[:, 0], raw["terminals"])
+
+
+def test_embedded_lookup_takes_only_shipped_names():
+    for name in ("../assets/hopper-medium-v2-10k", "hopper-medium-v2", "ATTRIBUTION"):
+        with pytest.raises(DatasetError, match="No embedded dataset named .*shipped: .*walker2d"):
+            embedded_dataset_path(name)
+
+
+def test_shipped_name_missing_from_install_is_an_error(tmp_path, monkeypatch):
+    # An install without its package data says so rather than falling back to
+    # ../shared (which holds a file of the same name here).
+    monkeypatch.setattr(importlib.resources, "files", lambda package: tmp_path)
+    with pytest.raises(DatasetError, match="'walker2d-medium-v2-10k' is missing from this installation"):
+        load_dataset("walker2d-medium-v2-10k")
 
 
 @requires_shared

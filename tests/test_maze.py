@@ -1,12 +1,12 @@
 """Maze environments and data: D4RL antmaze-umaze evaluation env, PointMaze data.
 
-Needs Gymnasium-Robotics (the ``maze`` extra) and, for the antmaze checks,
-``../shared/datasets/d4rl-10k/antmaze-umaze-v0-10k.npz``; the tests that need
-them skip with the reason when they are absent.
+Needs Gymnasium-Robotics (the ``maze`` extra); the tests that need it skip with
+the reason when it is absent. The antmaze data ships with the package.
 """
 
 from __future__ import annotations
 
+import importlib.resources
 import sys
 import time
 
@@ -15,16 +15,13 @@ import numpy as np
 import pytest
 import torch
 
-from torchrl_tels.data import delete_regions, load_dataset
+from torchrl_tels.data import delete_regions, embedded_dataset_path, load_dataset
 from torchrl_tels.envs import get_task, normalized_score
 from torchrl_tels.collection import pointmaze as maze_collection
-from torchrl_tels.data import shared_datasets_dir
 from torchrl_tels.envs import pointmaze
 from torchrl_tels.envs import antmaze
 
-# ../shared/datasets beside the checkout, or $TORCHRL_TELS_SHARED_DATASETS.
-_SHARED = shared_datasets_dir()
-ANTMAZE_FILE = None if _SHARED is None else _SHARED / "d4rl-10k" / "antmaze-umaze-v0-10k.npz"
+ANTMAZE = "antmaze-umaze-v0-10k"  # shipped in torchrl_tels/data/assets
 try:
     antmaze.import_gymnasium_robotics()
 except ImportError:
@@ -35,18 +32,13 @@ needs_robotics = pytest.mark.skipif(
     not HAS_ROBOTICS,
     reason='gymnasium-robotics is not installed (pip install "torchrl-tels[maze]")',
 )
-needs_antmaze_file = pytest.mark.skipif(
-    ANTMAZE_FILE is None or not ANTMAZE_FILE.is_file(),
-    reason="../shared/datasets/d4rl-10k/antmaze-umaze-v0-10k.npz is absent "
-    "(../shared is not beside this checkout; or set TORCHRL_TELS_SHARED_DATASETS)",
-)
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 
 @pytest.fixture
 def antmaze_arrays():
-    with np.load(ANTMAZE_FILE) as data:
+    with importlib.resources.as_file(embedded_dataset_path(ANTMAZE)) as path, np.load(path) as data:
         return {key: data[key] for key in data.files}
 
 
@@ -123,7 +115,6 @@ def test_antmaze_patched_model_and_protocol():
 
 
 @needs_robotics
-@needs_antmaze_file
 def test_antmaze_one_step_replay_matches_d4rl(antmaze_arrays):
     """Set each stored state, apply the stored action: the stored next state comes out."""
     observations = antmaze_arrays["observations"]
@@ -156,10 +147,9 @@ def test_antmaze_one_step_replay_matches_d4rl(antmaze_arrays):
     assert np.all(distance[~rewarded] > antmaze.SUCCESS_RADIUS)
 
 
-@needs_antmaze_file
 def test_delete_regions_antmaze_por_box():
     """POR's U-maze box (D4RL coordinates) removes exactly the 300 points inside it."""
-    data = load_dataset(ANTMAZE_FILE)
+    data = load_dataset(ANTMAZE)
     box = (5.0, 10.0, 2.0, 7.0)
     kept = delete_regions(data, [box])
     assert len(data) == 5383 and len(kept) == 5383 - 300
@@ -363,7 +353,6 @@ def test_fixed_task_starts_and_ends_in_its_cells():
 
 
 @needs_robotics
-@needs_antmaze_file
 def test_maze_domain_runs_at_the_smoke_budget(tmp_path, capsys):
     """``domain=maze budget=smoke``: Eq. 10 guide with the AntMaze values, POR's box deleted, success-rate score."""
     import importlib.util

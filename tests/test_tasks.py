@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,7 +11,6 @@ import torchrl_tels.envs.tasks as tasks_module
 from torchrl_tels.data import load_dataset
 from torchrl_tels.envs import get_task, list_tasks, normalized_score, register_task, Task
 
-SHARED_D4RL = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "d4rl-10k"
 
 # Gymnasium flags the v4 MuJoCo tasks as old; they are the ones D4RL v2 matches.
 pytestmark = pytest.mark.filterwarnings("ignore:.*is out of date:DeprecationWarning")
@@ -77,7 +74,6 @@ def test_mujoco_task_dims_match_env(env_family):
         env.close()
 
 
-@pytest.mark.skipif(not SHARED_D4RL.is_dir(), reason="../shared datasets absent")
 @pytest.mark.parametrize(
     "name",
     [
@@ -88,7 +84,7 @@ def test_mujoco_task_dims_match_env(env_family):
         "antmaze-umaze-v0-10k",
     ],
 )
-def test_task_dims_match_shared_data(name):
+def test_task_dims_match_shipped_data(name):
     task = get_task(name)
     data = load_dataset(task.dataset)
     assert data["observation"].shape[-1] == task.observation_dim

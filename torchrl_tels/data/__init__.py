@@ -3,6 +3,7 @@
 from torchrl_tels.data.datasets import (
     D4RL_REQUIRED_KEYS,
     EMBEDDED_DATASET,
+    EMBEDDED_DATASETS,
     DatasetError,
     embedded_dataset_path,
     load_dataset,
@@ -23,6 +24,7 @@ from torchrl_tels.data.subsets import (
 __all__ = [
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
+    "EMBEDDED_DATASETS",
     "PAPER_SUBSET_SIZES",
     "SUBSET_MODES",
     "DatasetError",

@@ -19,12 +19,15 @@ last transition of every trajectory has ``("next", "done")`` set.
 Sources understood by :func:`load_dataset`:
 
 * a D4RL-style ``.npz`` or ``.hdf5`` file (``observations``, ``actions``,
-  ``rewards``, ``next_observations``, ``terminals``, optional ``timeouts``);
+  ``rewards``, ``next_observations``, ``terminals``, optional ``timeouts``), or
+  a ``.npy`` holding a pickled dict of those arrays (how TSRL ships its small
+  samples), unpickled without calling anything but NumPy's array rebuilders;
 * an in-memory mapping with the same keys;
-* the dataset shipped inside the package (``"hopper-medium-v2-10k"``, also
-  reachable as ``"embedded"``/``"default"``);
-* a name of a file in the workplace's shared dataset folder
-  (``"halfcheetah-medium-v2-10k"``, see :func:`shared_datasets_dir`);
+* a dataset shipped inside the package: the five 10k sets of the paper's
+  Table 1 (:data:`EMBEDDED_DATASETS`; ``"embedded"``/``"default"`` name
+  ``"hopper-medium-v2-10k"``);
+* a name of a file in the workplace's shared dataset folder (see
+  :func:`shared_datasets_dir`);
 * a Minari dataset id (``"mujoco/hopper/medium-v0"``), read with Minari's own
   episode API from ``MINARI_DATASETS_PATH`` and downloaded when Minari's remote
   support is installed.
@@ -38,12 +41,14 @@ from __future__ import annotations
 import importlib.resources
 import importlib.util
 import os
+import pickle
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+from numpy.lib import format as npy_format
 from tensordict import TensorDict
 
 from torchrl_tels.errors import DatasetError
@@ -55,6 +60,7 @@ __all__ = [
     "DatasetError",
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
+    "EMBEDDED_DATASETS",
     "load_dataset",
     "minari_dataset_to_tensordict",
     "embedded_dataset_path",
@@ -74,8 +80,18 @@ D4RL_REQUIRED_KEYS: tuple[str, ...] = (
 #: Optional D4RL key marking time-limit truncations.
 D4RL_OPTIONAL_KEYS: tuple[str, ...] = ("timeouts",)
 
-#: Name of the dataset shipped in ``torchrl_tels/data/assets``.
+#: The default dataset, reached by the aliases ``"embedded"``/``"default"``.
 EMBEDDED_DATASET = "hopper-medium-v2-10k"
+#: Datasets shipped in ``torchrl_tels/data/assets`` (``<name>.npz``): the
+#: reduced-size D4RL samples of the paper's Table 1, so that every Table 1 task
+#: runs from an installed package alone (attribution in ``ATTRIBUTION.md``).
+EMBEDDED_DATASETS: tuple[str, ...] = (
+    "hopper-medium-v2-10k",
+    "hopper-medium-replay-v2-10k",
+    "halfcheetah-medium-v2-10k",
+    "walker2d-medium-v2-10k",
+    "antmaze-umaze-v0-10k",
+)
 _EMBEDDED_ALIASES = ("embedded", "default")
 
 #: Environment variable overriding the location of the shared dataset folder.
@@ -83,7 +99,7 @@ SHARED_DATASETS_ENV = "TORCHRL_TELS_SHARED_DATASETS"
 #: Sub-folders of the shared dataset folder searched for ``<name>.npz``.
 _SHARED_SUBDIRS = ("d4rl-10k",)
 
-_FILE_SUFFIXES = (".npz", ".hdf5", ".h5")
+_FILE_SUFFIXES = (".npz", ".npy", ".hdf5", ".h5")
 
 
 # --------------------------------------------------------------------------- #
@@ -110,8 +126,8 @@ def embedded_dataset_path(name: str = EMBEDDED_DATASET) -> Traversable:
     """Return the packaged asset for ``name`` as an importlib resource.
 
     Args:
-        name: dataset name (file stem in ``torchrl_tels/data/assets``), or one
-            of the aliases ``"embedded"`` / ``"default"``.
+        name: one of :data:`EMBEDDED_DATASETS`, or one of the aliases
+            ``"embedded"`` / ``"default"``.
 
     Returns:
         The resource; use :func:`importlib.resources.as_file` to get a
@@ -122,11 +138,20 @@ def embedded_dataset_path(name: str = EMBEDDED_DATASET) -> Traversable:
     """
     if name in _EMBEDDED_ALIASES:
         name = EMBEDDED_DATASET
+    # Only known names: an arbitrary string must not become a path inside the
+    # installed package.
+    if name not in EMBEDDED_DATASETS:
+        raise DatasetError(
+            f"No embedded dataset named {name!r}; shipped: {list(EMBEDDED_DATASETS)}."
+        )
     resource = importlib.resources.files("torchrl_tels.data").joinpath(
         "assets", f"{name}.npz"
     )
-    if not resource.is_file():
-        raise DatasetError(f"No embedded dataset named {name!r}.")
+    if not resource.is_file():  # an install that lost its package data
+        raise DatasetError(
+            f"The embedded dataset {name!r} is missing from this installation "
+            f"({resource}); reinstall torchrl-tels."
+        )
     return resource
 
 
@@ -166,7 +191,7 @@ def recorded_env_id(source: DatasetSource) -> str | None:
     Lets a user's own dataset be evaluated where it was collected. Prefers the
     dataset's evaluation env over its collection env, as Minari does.
     """
-    if not isinstance(source, str) or Path(source).suffix in (".npz", ".hdf5", ".h5"):
+    if not isinstance(source, str) or Path(source).suffix in _FILE_SUFFIXES:
         return None
     try:
         local_path = _minari_local_path(source)
@@ -200,15 +225,21 @@ def load_dataset(
 
     Resolution order for a string ``source``:
 
-    1. an existing file (``.npz``, ``.hdf5``/``.h5``), or a string that looks
-       like a path (has one of these suffixes or starts with ``.``, ``~``,
-       ``/``), which must then exist;
-    2. the embedded dataset (``"hopper-medium-v2-10k"``, ``"embedded"``,
-       ``"default"``);
+    1. an existing file (``.npz``, ``.npy``, ``.hdf5``/``.h5``), or a string
+       that looks like a path (has one of these suffixes or starts with ``.``,
+       ``~``, ``/``), which must then exist;
+    2. a dataset shipped with the package (:data:`EMBEDDED_DATASETS`, e.g.
+       ``"walker2d-medium-v2-10k"``; ``"embedded"``/``"default"`` for
+       ``"hopper-medium-v2-10k"``);
     3. ``<shared_datasets_dir()>/d4rl-10k/<source>.npz``;
     4. a Minari dataset id, local under ``MINARI_DATASETS_PATH`` (default
        ``~/.minari/datasets``), downloaded if ``download`` and Minari's remote
        support is installed.
+
+    A ``.npy`` file must hold one dict of D4RL arrays, pickled by ``np.save``
+    (a bare dict, or TSRL's one-element array of it). Only the globals NumPy
+    needs to rebuild arrays are unpickled; any other refuses the file before
+    anything in it runs.
 
     For D4RL-style data, trajectories end where ``terminals`` or ``timeouts``
     is set, where ``next_observations[i] != observations[i + 1]``, and at the
@@ -270,13 +301,13 @@ def load_dataset(
         raise DatasetError(f"Dataset file not found: {str(path)!r}.")
     looked_at.append(f"file {str(path)!r}")
 
-    try:
+    # A shipped name never falls through to the shared folder: an install that
+    # lost its package data should say so, not load whatever else is around.
+    if source in EMBEDDED_DATASETS or source in _EMBEDDED_ALIASES:
         resource = embedded_dataset_path(source)
-    except DatasetError:
-        looked_at.append(f"embedded datasets {[EMBEDDED_DATASET, *_EMBEDDED_ALIASES]}")
-    else:
         with importlib.resources.as_file(resource) as resource_path:
             return _load_d4rl_file(resource_path, source_name=source)
+    looked_at.append(f"embedded datasets {[*EMBEDDED_DATASETS, *_EMBEDDED_ALIASES]}")
 
     shared = shared_datasets_dir()
     if shared is None:
@@ -310,6 +341,8 @@ def _load_d4rl_file(path: Path, source_name: str | None = None) -> TensorDict:
             # allow_pickle=False: these files must hold plain arrays only.
             with np.load(path, allow_pickle=False) as archive:
                 arrays = {key: archive[key] for key in archive.files}
+        elif suffix == ".npy":
+            arrays = _read_pickled_npy(path, source_name)
         elif suffix in (".hdf5", ".h5"):
             import h5py
 
@@ -331,6 +364,95 @@ def _load_d4rl_file(path: Path, source_name: str | None = None) -> TensorDict:
     except Exception as err:  # corrupt archive, pickled objects, bad HDF5...
         raise DatasetError(f"{source_name}: could not be read ({err}).") from err
     return _d4rl_arrays_to_tensordict(arrays, source_name=source_name)
+
+
+# What ``np.save`` writes for an object array of a dict of numeric arrays needs
+# exactly these globals; each only builds an array or a dtype from the data it
+# is given. ``_reconstruct`` is taken from a live array so that it is this
+# NumPy's own, under either module name a file may carry (``numpy.core``
+# before NumPy 2, ``numpy._core`` since). A dict needs no global: pickle
+# protocols >= 1 have an opcode for it.
+_NPY_RECONSTRUCT = np.empty(0).__reduce__()[0]
+_NPY_ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
+    ("numpy.core.multiarray", "_reconstruct"): _NPY_RECONSTRUCT,
+    ("numpy._core.multiarray", "_reconstruct"): _NPY_RECONSTRUCT,
+    ("numpy", "ndarray"): np.ndarray,
+    ("numpy", "dtype"): np.dtype,
+}
+
+
+class _ArraysOnlyUnpickler(pickle.Unpickler):
+    """An unpickler that resolves no global but :data:`_NPY_ALLOWED_GLOBALS`.
+
+    Every callable a pickle can call reaches it through :meth:`find_class`
+    (the GLOBAL, STACK_GLOBAL, INST and OBJ opcodes and copyreg's extension
+    codes), so refusing here refuses before anything named in the file runs.
+    """
+
+    def __init__(self, file: Any, source_name: str) -> None:
+        super().__init__(file)
+        self._source_name = source_name
+
+    def find_class(self, module: str, name: str) -> Any:
+        try:
+            return _NPY_ALLOWED_GLOBALS[(module, name)]
+        except KeyError:
+            raise DatasetError(
+                f"{self._source_name}: refused to unpickle the global "
+                f"'{module}.{name}'; a .npy dataset may only hold NumPy arrays in "
+                "a dict, so the file was not loaded and nothing it names was called."
+            ) from None
+
+
+def _read_pickled_npy(path: Path, source_name: str) -> dict[str, np.ndarray]:
+    """The dict of arrays in a ``.npy`` that ``np.save`` wrote from a dict.
+
+    Reads what ``np.load(path, allow_pickle=True)`` would, but unpickles with
+    :class:`_ArraysOnlyUnpickler` instead of :mod:`pickle`'s trust-everything
+    default.
+    """
+
+    def refuse(what: str) -> DatasetError:
+        return DatasetError(
+            f"{source_name}: holds {what}; a .npy dataset must hold one dict of "
+            "D4RL arrays, as written by np.save(path, {'observations': ..., ...}). "
+            "Save plain arrays with np.savez instead."
+        )
+
+    with open(path, "rb") as file:
+        version = npy_format.read_magic(file)
+        if version == (1, 0):
+            shape, _, dtype = npy_format.read_array_header_1_0(file)
+        elif version == (2, 0):
+            shape, _, dtype = npy_format.read_array_header_2_0(file)
+        else:  # 3.0 only adds UTF-8 field names, which no object array has
+            raise DatasetError(
+                f"{source_name}: .npy format version {version[0]}.{version[1]} is "
+                "not supported here; expected 1.0 or 2.0."
+            )
+        # Only an object array is stored as a pickle; anything else is one
+        # plain array, which cannot be a whole dataset.
+        if dtype != np.dtype(object):
+            raise refuse(f"one {dtype} array of shape {shape}")
+        content = _ArraysOnlyUnpickler(file, source_name).load()
+
+    # The header's promise is checked on what was actually unpickled.
+    if not isinstance(content, np.ndarray):
+        raise refuse(f"a pickled {type(content).__name__}, not an array")
+    if content.dtype != np.dtype(object) or content.size != 1:
+        raise refuse(f"an array of dtype {content.dtype} and shape {content.shape}")
+    content = content.item()
+    if not isinstance(content, dict):
+        raise refuse(f"a {type(content).__name__}")
+    not_arrays = [
+        f"{key!r}: {type(value).__name__}"
+        for key, value in content.items()
+        if not (isinstance(key, str) and isinstance(value, np.ndarray))
+    ]
+    if not_arrays:
+        entries = ", ".join(not_arrays)
+        raise refuse(f"a dict with entries that are not name: array ({entries})")
+    return content
 
 
 def _as_numeric(array: Any, key: str, source_name: str) -> np.ndarray:
