@@ -28,10 +28,10 @@ import torch
 
 from benchmarks.harness import machine_description
 from benchmarks.step_floor import recipe_config
-from torchrl_tels.compile import capturable_adam, compile_update, precision_context
+from torchrl_tels.compile import capturable_adam
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
 from torchrl_tels.seeds import SeedRNG, StackedLoss
-from torchrl_tels.trainer import (compile_options, make_stage2, make_train_step, make_tsidm, make_tsidm_loss,
+from torchrl_tels.trainer import (compile_options, make_compiled_step, make_stage2, make_tsidm, make_tsidm_loss,
                                   sample_seeds, StackedStage2)
 from torchrl_tels.training import FiniteWatch
 
@@ -60,8 +60,7 @@ def tsidm_step(cfg, data, seeds: list[int]):
     loss = losses[0] if len(seeds) == 1 else StackedLoss(losses)
     params = loss.parameters() if len(seeds) == 1 else loss.trainable()
     optim = capturable_adam(params, lr=cfg.tsidm.lr, capturable=compile_options(cfg)["cudagraphs"])
-    train_step = compile_update(make_train_step(loss, optim, precision_context(device, cfg.precision)),
-                                **compile_options(cfg))
+    train_step = make_compiled_step(loss, optim, cfg, device)
     watch = FiniteWatch("stage 1")
     state = {"step": 0}
 
@@ -111,6 +110,22 @@ def time_block(step, steps: int, device: torch.device) -> float:
     return 1e3 * (time.perf_counter() - start) / steps
 
 
+def print_profile(stage: str, mode: str, step, steps: int, device: torch.device, rows: int = 15) -> None:
+    """The operators (and compiled graphs) that take a step's time, by self time per step."""
+    from torch.profiler import profile, ProfilerActivity
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        time_block(step, steps, device)
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in events)
+    print(f"\n{stage} step, {mode}: self CPU time per step by operator (profiled, so slower than timed)")
+    for event in events[:rows]:
+        print(f"  {event.key[:60]:60s} {event.self_cpu_time_total / steps / 1e3:7.3f} ms "
+              f"{event.count / steps:6.1f} calls")
+    print(f"  {'total':60s} {total / steps / 1e3:7.3f} ms")
+
+
 def main():
     parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=1)
@@ -126,6 +141,8 @@ def main():
     parser.add_argument("--precision", default="fp32", choices=["fp32", "bf16"])
     parser.add_argument("--override", nargs="*", default=[], help="more hydra overrides of the recipe's config")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    parser.add_argument("--profile", action="store_true",
+                        help="after timing, profile one block per stage and mode: where a step's time goes")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -164,6 +181,9 @@ def main():
         for mode in modes:
             ratio = f"{ms['eager'] / ms[mode]:8.2f}x" if "eager" in ms else "       -"
             print(f"{mode:18s} {ms[mode]:8.2f} {1e3 / ms[mode]:9.1f} {ratio} {warmup_s[mode]:10.1f}")
+        if args.profile:
+            for mode in modes:
+                print_profile(stage, mode, steps[mode], args.steps, device)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(figures, indent=2))

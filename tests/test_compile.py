@@ -11,12 +11,12 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from torchrl_tels.compile import capturable_adam, compile_update
+from torchrl_tels.compile import capturable_adam
 from torchrl_tels.config import validate_config
 from torchrl_tels.data import load_dataset
 from torchrl_tels.errors import ConfigError
 from torchrl_tels.seeds import SeedRNG
-from torchrl_tels.trainer import (compile_options, make_stage2, make_train_step, make_tsidm, make_tsidm_loss,
+from torchrl_tels.trainer import (compile_options, make_compiled_step, make_stage2, make_tsidm, make_tsidm_loss,
                                   StackedStage2)
 
 from benchmarks.step_floor import recipe_config
@@ -46,7 +46,7 @@ def stage1(cfg, data, device):
     torch.manual_seed(0)
     loss = make_tsidm_loss(cfg, make_tsidm(cfg, data).to(device), 1.0)
     optim = capturable_adam(loss.parameters(), lr=cfg.tsidm.lr, capturable=compile_options(cfg)["cudagraphs"])
-    return loss, compile_update(make_train_step(loss, optim), **compile_options(cfg))
+    return loss, make_compiled_step(loss, optim, cfg, torch.device(device))
 
 
 def assert_same_parameters(eager, compiled, atol, rtol=1e-3):

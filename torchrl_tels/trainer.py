@@ -88,26 +88,32 @@ def compile_options(cfg) -> dict:
             "mode": OmegaConf.select(cfg, "compile.mode", default=None)}
 
 
-def make_train_step(loss_module, optim: torch.optim.Optimizer, amp=contextlib.nullcontext):
+def make_compiled_step(loss_module, optim: torch.optim.Optimizer, cfg, device: torch.device):
+    """:func:`make_train_step` with the run's precision and ``compile`` switches."""
+    options = compile_options(cfg)
+    step = make_train_step(loss_module, optim, precision_context(device, cfg.precision),
+                           compile=options["compile"], mode=options["mode"])
+    return compile_update(step, cudagraphs=options["cudagraphs"])
+
+
+def make_train_step(loss_module, optim: torch.optim.Optimizer, amp=contextlib.nullcontext, *,
+                    compile: bool = False, mode: str | None = None):
     """One train step of ``loss_module`` as a function of the batch: forward (under ``amp``), backward
     of the sum of its ``loss_*`` entries (summed over seeds for a stacked loss), optimizer step.
 
-    Returns the detached losses; :func:`~torchrl_tels.compile.compile_update` can take it whole.
-    ``torch.compile`` leaves the optimizer to its fused kernel (:func:`torch.compiler.disable`): tracing
-    Adam costs more per step than it saves (BENCHMARKS.md, "Compiled updates"), and a CUDA graph
-    records the fused kernel all the same. The gradients are cleared after the step, so the step
-    starts from none."""
-
-    @torch.compiler.disable
-    def apply_gradients():
-        optim.step()
-        optim.zero_grad(set_to_none=True)
+    Returns the detached losses. :func:`~torchrl_tels.compile.compile_update` can record the step
+    whole as a CUDA graph. ``compile`` compiles the loss's forward pass (its backward follows, through
+    AOTAutograd) and leaves the optimizer its fused kernel: compiling the whole step instead breaks its
+    graph at the backward and at the optimizer, and stage 2's two steps then share compiled frames
+    whose guard checks cost more per step than compiling saves (BENCHMARKS.md, "Compiled updates")."""
+    forward = torch.compile(loss_module, mode=mode) if compile else loss_module
 
     def train_step(batch: TensorDictBase) -> TensorDictBase:
         with amp():
-            losses = loss_module(batch)
+            losses = forward(batch)
         sum_losses(losses).sum().backward()  # a stacked loss: the seeds share no parameter
-        apply_gradients()
+        optim.step()
+        optim.zero_grad(set_to_none=True)
         return losses.detach()
 
     return train_step
@@ -322,8 +328,7 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
         run.restore(loss=loss_module, optim=optim)
         start, history, tail = run.step, run.tsidm_history, run.modules["tail"]
 
-    train_step = compile_update(make_train_step(loss_module, optim, precision_context(device, cfg.precision)),
-                                **compile_options(cfg))
+    train_step = make_compiled_step(loss_module, optim, cfg, device)
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
                          initial=start, total=total, mininterval=2.0)
     for step in progress:
@@ -383,8 +388,7 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
         run.restore(loss=stack, optim=optim, seed_rng=rng)
         start, histories, tail = run.step, run.modules["histories"], run.modules["tail"]
 
-    train_step = compile_update(make_train_step(stack, optim, precision_context(device, cfg.precision)),
-                                **compile_options(cfg))
+    train_step = make_compiled_step(stack, optim, cfg, device)
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}, {len(seeds)} seeds",
                          file=sys.stdout, initial=start, total=total, mininterval=2.0)
     for step in progress:
@@ -517,10 +521,11 @@ class Stage2:
     guide_watch: FiniteWatch = field(default_factory=lambda: FiniteWatch("stage 2 (guide)"))
 
     def __post_init__(self):
+        compiled = {"compile": self.compile.get("compile", False), "mode": self.compile.get("mode")}
         self.train_step = compile_update(make_stage2_step(
-            make_train_step(self.value_loss, self.value_optim, self.amp),
-            make_train_step(self.guide_loss, self.guide_optim, self.amp),
-            self.target_updater.step), **self.compile)
+            make_train_step(self.value_loss, self.value_optim, self.amp, **compiled),
+            make_train_step(self.guide_loss, self.guide_optim, self.amp, **compiled),
+            self.target_updater.step), cudagraphs=self.compile.get("cudagraphs", False))
 
     def update(self, batch: TensorDictBase, step: int):
         """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V; then the target V.
@@ -589,10 +594,11 @@ class StackedStage2:
         self.target_weight = 1 - first.target_updater.eps  # torchrl's SoftUpdate: target.lerp_(source, 1 - eps)
         self.value_watch = FiniteWatch("stage 2 (value)", entries=self.labels)
         self.guide_watch = FiniteWatch("stage 2 (guide)", entries=self.labels)
+        compiled = {"compile": first.compile.get("compile", False), "mode": first.compile.get("mode")}
         self.train_step = compile_update(make_stage2_step(
-            make_train_step(self.value, self.value_optim, first.amp),
-            make_train_step(self.guide, self.guide_optim, first.amp),
-            self.update_target), **first.compile)
+            make_train_step(self.value, self.value_optim, first.amp, **compiled),
+            make_train_step(self.guide, self.guide_optim, first.amp, **compiled),
+            self.update_target), cudagraphs=first.compile.get("cudagraphs", False))
 
     def sample(self) -> TensorDictBase:
         return sample_seeds([stage.buffer for stage in self.stages], self.rng)
