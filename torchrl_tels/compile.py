@@ -1,19 +1,21 @@
-"""``torch.compile`` and CUDA graphs for a whole train step, as torchrl's ``sota-implementations`` switch them.
+"""``torch.compile`` and CUDA graphs for a train step, switched as torchrl's ``sota-implementations`` do.
 
 A train step of either stage is one Python function of the batch: the loss forward pass, the backward
-pass, the optimizer step and the target update. At the batch sizes and widths of TELS a GPU is idle
-most of such a step: its cost is Python, tensordict and kernel-launch overhead, not arithmetic. Two
-wrappers remove that overhead, and :func:`compile_update` applies them in torchrl's order:
+pass, the optimizer step and the target update (``torchrl_tels.trainer.make_train_step``). At the batch
+sizes and widths of TELS a GPU is idle most of such a step: its cost is Python, tensordict and
+kernel-launch overhead, not arithmetic. Two tools remove that overhead:
 
-* ``torch.compile`` fuses the step's many small kernels and traces the functional-parameter swaps
-  (``to_module``) and key handling away;
-* :class:`tensordict.nn.CudaGraphModule` records the step once as a CUDA graph, after ``warmup``
+* ``torch.compile`` fuses a loss's many small kernels and traces its functional-parameter swaps
+  (``to_module``) and key handling away. The recipe compiles each loss's forward pass (the backward
+  follows through AOTAutograd) and leaves Adam to its fused kernel (see ``make_train_step``);
+  :func:`compile_update` compiles a whole function, such as the evaluation policy's call;
+* :class:`tensordict.nn.CudaGraphModule` records the whole step once as a CUDA graph, after ``warmup``
   eager calls, and replays it: one launch per step. Its optimizers must be *capturable*
   (:func:`capturable_adam`), so that Adam's step counter lives on the device.
 
-Neither wrapper changes the arithmetic beyond float rounding (``tests/test_compile.py``). On a CPU
-the recipe's widths are compute-bound and eager is the faster mode (BENCHMARKS.md, "Compiled
-updates"), so both switches are off by default.
+Neither changes the arithmetic beyond float rounding (``tests/test_compile.py``). On a CPU the
+recipe's widths are compute-bound and eager is the faster mode (BENCHMARKS.md, "Compiled train
+steps"), so both switches are off by default.
 """
 from __future__ import annotations
 

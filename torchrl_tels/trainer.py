@@ -105,7 +105,7 @@ def make_train_step(loss_module, optim: torch.optim.Optimizer, amp=contextlib.nu
     whole as a CUDA graph. ``compile`` compiles the loss's forward pass (its backward follows, through
     AOTAutograd) and leaves the optimizer its fused kernel: compiling the whole step instead breaks its
     graph at the backward and at the optimizer, and stage 2's two steps then share compiled frames
-    whose guard checks cost more per step than compiling saves (BENCHMARKS.md, "Compiled updates")."""
+    whose guard checks cost more per step than compiling saves (BENCHMARKS.md, "Compiled train steps")."""
     forward = torch.compile(loss_module, mode=mode) if compile else loss_module
 
     def train_step(batch: TensorDictBase) -> TensorDictBase:

@@ -23,6 +23,9 @@ from omegaconf import OmegaConf
 from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results"
+#: What the recorded arms of a budget ran with beyond the budget group itself: at the study budget,
+#: one evaluation episode at a time (the recipe's default since batches them).
+PROTOCOL = {"budget=study": ["eval.batched=false"]}
 
 
 def main():
@@ -41,8 +44,9 @@ def main():
         return
     run_dir = REPO / "runs" / "reproduction" / args.name / args.task / f"seed{args.seed}"
     start = time.time()
+    protocol = [pin for budget in args.budget for pin in PROTOCOL.get(budget, [])]
     cmd = run_recipe([f"dataset.name={args.task}", f"seed={args.seed}", f"run_dir={run_dir}", "resume=true",
-                      "logger.wandb_mode=disabled", *args.budget, *args.override], args.threads)
+                      "logger.wandb_mode=disabled", *args.budget, *protocol, *args.override], args.threads)
     results = json.loads((run_dir / "results.json").read_text())
     # The preset's choices are not in --override, so a later change of the preset would otherwise
     # leave no trace in the JSON (results.json already records the beta used).
