@@ -1,4 +1,5 @@
-"""The layers point one way: data knows no algorithm or environment; the library never imports a script."""
+"""The layers point one way: data knows no algorithm or environment; the library never imports a script;
+every name a module exports exists there."""
 from __future__ import annotations
 
 import ast
@@ -43,6 +44,32 @@ def test_library_never_imports_a_script():
                  for path in sorted(PACKAGE.rglob("*.py")) for name in imported_modules(path)
                  if name.split(".")[0] in ("recipes", "benchmarks", "tests", "scripts")]
     assert not offenders, "\n".join(offenders)
+
+
+def bound_names(tree: ast.Module) -> set[str]:
+    """Names a module binds at its top level (definitions, assignments, imports)."""
+    names = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(target.id for target in targets if isinstance(target, ast.Name))
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((alias.asname or alias.name).split(".")[0] for alias in node.names)
+    return names
+
+
+def test_every_exported_name_is_bound():
+    # a name left in __all__ after it moved breaks `from module import *` with an AttributeError
+    stale = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in tree.body:
+            if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__" for t in node.targets):
+                stale += [f"{path.relative_to(PACKAGE.parent)}: {name}"
+                          for name in ast.literal_eval(node.value) if name not in bound_names(tree)]
+    assert not stale, "\n".join(stale)
 
 
 def test_tasks_resolve_without_importing_env_modules_by_hand():

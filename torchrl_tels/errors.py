@@ -8,7 +8,8 @@ would expect (``ValueError``, ``RuntimeError``, ...).
 from __future__ import annotations
 
 __all__ = [
-    "CheckpointError", "ConfigError", "DatasetError", "MonitorError", "NonFiniteLossError", "TaskError", "TelsError",
+    "CheckpointError", "ConfigError", "DatasetError", "MonitorError", "NonFiniteLossError", "OutKeysError", "TaskError",
+    "TelsError",
 ]
 
 
@@ -44,3 +45,10 @@ class NonFiniteLossError(TelsError, FloatingPointError):
 class MonitorError(TelsError, ValueError):
     """The consistency monitor was misused or fed bad data: a flag asked of an uncalibrated
     monitor, a TS-IDM whose sizes differ from the env's or the data's, a non-finite input."""
+
+
+class OutKeysError(TelsError, ValueError, RuntimeError):
+    """A loss was asked for an output key it does not write (``select_out_keys``, ``out_keys = ...``).
+
+    Both builtins because tensordict's ``select_out_keys`` raises ``ValueError`` for one unknown key and
+    ``RuntimeError`` for several: code written against torchrl's losses catches this one either way."""

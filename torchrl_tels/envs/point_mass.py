@@ -44,7 +44,6 @@ __all__ = [
     "START",
     "TASK_NAME",
     "PointMassGoal",
-    "make_point_mass_dataset",
     "register_point_mass_env",
     "register_point_mass_task",
 ]

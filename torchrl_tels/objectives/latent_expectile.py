@@ -12,7 +12,9 @@ from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators
 
 from torchrl_tels.modules.actors import LATENT_KEY
-from torchrl_tels.objectives._common import checked_get, GAMMA_IN_CONSTRUCTOR, LazyInKeysMixin, make_td0_value_estimator
+from torchrl_tels.objectives._common import (
+    checked_get, GAMMA_IN_CONSTRUCTOR, LazyInKeysMixin, make_td0_value_estimator, SelectableOutKeysMixin,
+)
 
 __all__ = ["LatentExpectileLoss", "expectile_loss"]
 
@@ -23,7 +25,7 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     return weight * diff.pow(2)
 
 
-class LatentExpectileLoss(LazyInKeysMixin, LossModule):
+class LatentExpectileLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
     r"""Expectile regression of a latent state value (paper §3.2, Eq. 8).
 
     .. math::
@@ -45,6 +47,10 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
     ``torchrl.objectives.SoftUpdate(loss, tau=0.05)`` (Table 11: target moving
     average 0.05).
 
+    The output holds ``loss_value`` and the detached batch means
+    ``state_value`` and ``value_target``; ``select_out_keys`` keeps a subset
+    (``out_keys_source`` still lists all three).
+
     Args:
         value_network: a :class:`~tensordict.nn.TensorDictModule` reading the
             latent key and writing ``"state_value"``.
@@ -56,6 +62,12 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
         ...                       in_keys=["latent"])
         >>> loss = LatentExpectileLoss(value, expectile=0.7)
         >>> loss.make_value_estimator(gamma=0.99)
+        >>> _ = loss.select_out_keys("loss_value")
+        >>> n = 8
+        >>> loss_value = loss(latent=torch.randn(n, 11), next_latent=torch.randn(n, 11),
+        ...                   next_reward=torch.randn(n, 1), next_done=torch.zeros(n, 1, dtype=torch.bool),
+        ...                   next_terminated=torch.zeros(n, 1, dtype=torch.bool))
+        >>> loss_value.backward()
     """
 
     @dataclass
@@ -85,7 +97,6 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
     default_value_estimator = ValueEstimators.TD0
-    out_keys = ["loss_value", "state_value", "value_target"]
 
     value_network: TensorDictModule
     value_network_params: TensorDictParams
@@ -120,6 +131,9 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
             ("next", keys.terminated),
         ]
 
+    def _all_out_keys(self):
+        return ["loss_value", "state_value", "value_target"]
+
     def _check(self, tensordict: TensorDictBase) -> None:
         owner = type(self).__name__
         keys = self.tensor_keys
@@ -142,7 +156,7 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
         value = td.get(self.tensor_keys.value).squeeze(-1)
         # Eq. (8)
         loss_value = expectile_loss(target - value, self.expectile).mean()
-        return TensorDict(
+        out = TensorDict(
             {
                 "loss_value": loss_value,
                 "state_value": value.detach().mean(),
@@ -150,6 +164,7 @@ class LatentExpectileLoss(LazyInKeysMixin, LossModule):
             },
             batch_size=[],
         )
+        return self._selected_output(out)
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
         return make_td0_value_estimator(self, value_type, hyperparams)

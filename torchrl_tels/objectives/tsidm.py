@@ -11,7 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
 from torchrl_tels.modules.tsidm import jvp, LATENT_STD_EPS, squared_norm, standardize, TSIDM
-from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin
+from torchrl_tels.objectives._common import checked_get, LazyInKeysMixin, SelectableOutKeysMixin
 
 __all__ = ["TSIDMLoss", "TSIDM_ABLATIONS", "LATENT_SCALES"]
 
@@ -23,7 +23,7 @@ TSIDM_ABLATIONS = ("ae", "dyn", "ode", "full")
 LATENT_SCALES = ("free", "relative", "standardized")
 
 
-class TSIDMLoss(LazyInKeysMixin, LossModule):
+class TSIDMLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
     r"""The TS-IDM objective of TELS (paper §3.1, Eq. 7).
 
     With :math:`s, s'` normalized by the TS-IDM and :math:`\dot s = s' - s`,
@@ -79,6 +79,11 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
     leans toward the smallest one, while ``ell_sum`` compares candidates on one
     objective (``benchmarks/reproduction/LOG.md``, "the β rule read two ways").
 
+    ``select_out_keys`` keeps a subset of these entries (``out_keys_source``
+    still lists them all); the objective is then the sum of the ``loss_*``
+    entries kept, e.g. ``loss_state_rec`` + ``loss_action_rec`` to train the
+    autoencoder part alone.
+
     Args:
         tsidm: the :class:`~torchrl_tels.modules.TSIDM` to train.
         beta: the shared weight β of Eq. (7) (Table 10: chosen from {0.01, 0.1, 1}).
@@ -99,6 +104,9 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         ...                  ("next", "observation"): torch.randn(8, 11)}, [8])
         >>> out = loss(td)
         >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        >>> _ = loss.select_out_keys("loss_state_rec", "loss_action_rec")
+        >>> state_rec, action_rec = loss(observation=td["observation"], action=td["action"],
+        ...                              next_observation=td["next", "observation"])
     """
 
     @dataclass
@@ -179,8 +187,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
             ("next", self.tensor_keys.observation),
         ]
 
-    @property
-    def out_keys(self):
+    def _all_out_keys(self):
         level = TSIDM_ABLATIONS.index(self.ablation)
         terms = ["loss_state_rec", "loss_action_rec", "loss_dyn", "loss_ode", "loss_tsym"]
         ells = ["ell_rec", "ell_dyn", "ell_ode", "ell_tsym"]
@@ -289,4 +296,4 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
         # the latent scale the symmetry would shrink: RMS spread per dimension and RMS step
         out["latent_rms"] = z_both.detach().var(0).mean().sqrt()
         out["latent_step_rms"] = latent_step.detach().sqrt()
-        return TensorDict(out, batch_size=[])
+        return self._selected_output(TensorDict(out, batch_size=[]))

@@ -13,7 +13,9 @@ from torchrl.objectives.utils import ValueEstimators
 
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 from torchrl_tels.modules.tsidm import squared_norm, TSIDM
-from torchrl_tels.objectives._common import checked_get, GAMMA_IN_CONSTRUCTOR, LazyInKeysMixin, make_td0_value_estimator
+from torchrl_tels.objectives._common import (
+    checked_get, GAMMA_IN_CONSTRUCTOR, LazyInKeysMixin, make_td0_value_estimator, SelectableOutKeysMixin,
+)
 
 __all__ = ["TSymGuideLoss", "value_scale"]
 
@@ -25,7 +27,7 @@ def value_scale(alpha: float, data_values: torch.Tensor, eps: float = 1e-6) -> t
     return alpha / data_values.abs().mean().clamp_min(eps)
 
 
-class TSymGuideLoss(LazyInKeysMixin, LossModule):
+class TSymGuideLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
     r"""Trains the guide policy :math:`\pi_g` in the TS-IDM latent space (paper §3.2).
 
     Deterministic guide, Eq. (9) (MuJoCo):
@@ -77,6 +79,10 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
     their weights are held as detached views (they follow updates made by
     :class:`LatentExpectileLoss`) and only the guide's parameters are
     parameters of this loss.
+
+    ``out_keys`` follow ``mode``, ``tsym_regularizer`` and ``reach_weight``;
+    ``select_out_keys`` keeps a subset of them (``out_keys_source`` still lists
+    them all) and the objective is then the sum of the ``loss_*`` entries kept.
 
     Args:
         guide_network: :func:`~torchrl_tels.modules.make_guide_policy` output
@@ -210,8 +216,7 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
             ]
         self._in_keys = in_keys
 
-    @property
-    def out_keys(self):
+    def _all_out_keys(self):
         if self.mode == "deterministic":
             keys = ["loss_guide_value", "loss_guide_state"] + (["loss_reach"] if self.reach_weight else [])
             extra = ["lambda_alpha", "guide_value", "guide_step_rms"]
@@ -268,8 +273,10 @@ class TSymGuideLoss(LazyInKeysMixin, LossModule):
         if self.check_inputs:
             self._check(tensordict)
         if self.mode == "deterministic":
-            return self.deterministic_loss(tensordict)
-        return self.stochastic_loss(tensordict)
+            out = self.deterministic_loss(tensordict)
+        else:
+            out = self.stochastic_loss(tensordict)
+        return self._selected_output(out)
 
     def deterministic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         r"""Eq. (9) as losses: ``loss_guide_value`` (:math:`-\lambda_\alpha V(\pi_g(z_s))`),
