@@ -24,7 +24,7 @@ from benchmarks.harness import command_line, machine_description, REPO, run_reci
 
 RESULTS = REPO / "benchmarks" / "reproduction" / "results"
 #: What the recorded arms of a budget ran with beyond the budget group itself: at the study budget,
-#: one evaluation episode at a time (the recipe's default since batches them).
+#: one evaluation episode at a time (the recipe now batches them by default).
 PROTOCOL = {"budget=study": ["eval.batched=false"]}
 
 
