@@ -42,6 +42,7 @@ from omegaconf import DictConfig, open_dict, OmegaConf  # noqa: E402
 from torchrl_tels.config import (  # noqa: E402
     check_folder_creatable,
     check_precision_supported,
+    resolve_precision,
     resolve_threads,
     validate_config,
 )
@@ -80,6 +81,8 @@ def main(cfg: DictConfig) -> dict:
 def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
     """Checks the config (before ``run_dir`` exists), sets threads and the global seed, loads the run's state."""
     validate_config(cfg)
+    with open_dict(cfg):  # the precision the run computes in, as config.yaml and resume=true see it
+        cfg.precision = resolve_precision(cfg.precision, cfg.device)
     check_precision_supported(cfg.precision, cfg.device)
     torch.set_num_threads(resolve_threads(cfg.threads))
     torch.manual_seed(cfg.seed)

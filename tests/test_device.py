@@ -140,3 +140,15 @@ def test_stacked_seeds_on_cuda_match_cpu():
     on_gpu = StackedLoss([copy.deepcopy(loss).cuda() for loss in losses])(batch.cuda())
     for key in ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym"):
         torch.testing.assert_close(on_gpu[key].cpu(), on_cpu[key], rtol=1e-4, atol=1e-5)
+
+
+def test_auto_precision_is_bf16_only_on_a_cpu_that_multiplies_it_natively(monkeypatch):
+    import torchrl_tels.config as config
+
+    for native in (True, False):
+        monkeypatch.setattr(config, "native_bf16_supported", lambda: native)
+        assert config.resolve_precision("auto", "cpu") == ("bf16" if native else "fp32")
+        assert config.resolve_precision("fp32", "cpu") == "fp32"  # an explicit choice is kept
+        assert config.resolve_precision("bf16", "cpu") == "bf16"
+    if torch.cuda.is_available():
+        assert config.resolve_precision("auto", "cuda") == "fp32"

@@ -16,6 +16,7 @@ __all__ = [
     "ConfigError",
     "RESUMABLE_KEYS",
     "check_precision_supported",
+    "resolve_precision",
     "check_folder_creatable",
     "check_same_run",
     "check_writable_folder",
@@ -182,7 +183,7 @@ def validate_config(cfg) -> None:
         "guide.mode": ("deterministic", "stochastic"),
         "dataset.subset": SUBSET_MODES,
         "logger.wandb_mode": ("online", "offline", "disabled"),
-        "precision": ("fp32", "bf16"),
+        "precision": ("auto", "fp32", "bf16"),
     }
     for path, allowed in choices.items():
         value = OmegaConf.select(cfg, path)
@@ -213,6 +214,17 @@ def native_bf16_supported() -> bool:
     import torch
 
     return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
+def resolve_precision(spec: str, device: str = "cpu") -> str:
+    """The precision ``spec`` names: ``fp32``, ``bf16``, or for ``auto`` bf16 where the run computes on a
+    CPU that multiplies bf16 natively (AMX or AVX512-BF16) and fp32 everywhere else.
+
+    On such a CPU bf16 halves a step at the recipe's widths and scored as fp32 in paired runs
+    (BENCHMARKS.md, "bf16 on a CPU that has it"); elsewhere bf16 is emulated, or on a GPU not measured."""
+    if spec != "auto":
+        return str(spec)
+    return "bf16" if resolve_device(device).type == "cpu" and native_bf16_supported() else "fp32"
 
 
 def check_precision_supported(precision: str, device: str = "cpu") -> None:

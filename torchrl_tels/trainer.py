@@ -31,7 +31,7 @@ from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
-from torchrl_tels.config import check_same_run, resolve_device, training_config
+from torchrl_tels.config import check_same_run, resolve_device, resolve_precision, training_config
 from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
@@ -76,8 +76,8 @@ MONITOR_QUANTILE = 0.99
 
 
 def autocast(cfg):
-    """bf16 matmuls on the run's device (CPU or CUDA) when ``precision=bf16``; fp32 otherwise."""
-    return precision_context(resolve_device(cfg.device), cfg.precision)()
+    """bf16 matmuls on the run's device (CPU or CUDA) when ``precision`` is or resolves to bf16; fp32 otherwise."""
+    return precision_context(resolve_device(cfg.device), resolve_precision(cfg.precision, cfg.device))()
 
 
 def compile_options(cfg) -> dict:
@@ -91,7 +91,7 @@ def compile_options(cfg) -> dict:
 def make_compiled_step(loss_module, optim: torch.optim.Optimizer, cfg, device: torch.device):
     """:func:`make_train_step` with the run's precision and ``compile`` switches."""
     options = compile_options(cfg)
-    step = make_train_step(loss_module, optim, precision_context(device, cfg.precision),
+    step = make_train_step(loss_module, optim, precision_context(device, resolve_precision(cfg.precision, cfg.device)),
                            compile=options["compile"], mode=options["mode"])
     return compile_update(step, cudagraphs=options["cudagraphs"])
 
@@ -674,7 +674,7 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
         latent_stats=latent_stats,
         monitor=monitor,
         device=device,
-        amp=precision_context(device, cfg.precision),
+        amp=precision_context(device, resolve_precision(cfg.precision, cfg.device)),
         compile=compiled,
     )
 
