@@ -77,7 +77,7 @@ class TSIDMLoss(LazyInKeysMixin, LossModule):
     Appendix B.5 picks β as the one "with the lowest TS-IDM training loss";
     ``ell_total`` scales three of its terms by the candidate β itself and so
     leans toward the smallest one, while ``ell_sum`` compares candidates on one
-    objective (``benchmarks/reproduction/LOG.md``, "the β rule read two ways").
+    objective (``study/LOG.md``, "the β rule read two ways").
 
     Args:
         tsidm: the :class:`~torchrl_tels.modules.TSIDM` to train.

@@ -12,9 +12,9 @@ in two parametrizations:
 It prints, on the training rows and on the held-out rows, the guide's latent error next to the
 latent step, its decoded state error and the Eq. (11) action error ψ_a(h_inv(z, π_g(z)))::
 
-    python -m benchmarks.reproduction.guide_fit --run-dir runs/reproduction/holdout7500/hopper-medium-v2-10k/seed0
+    python -m study.guide_fit --run-dir runs/reproduction/holdout7500/hopper-medium-v2-10k/seed0
 
-writes ``benchmarks/reproduction/results/guide_fit/<task>-seed<k>.json`` (temp file + rename; skipped
+writes ``study/results/guide_fit/<task>-seed<k>.json`` (temp file + rename; skipped
 if it exists unless ``--force``).
 """
 from __future__ import annotations
@@ -28,7 +28,7 @@ import yaml
 from torchrl.modules import MLP
 
 from benchmarks.harness import invocation, machine_description, REPO, skip_existing, write_result
-from benchmarks.reproduction.action_error import training_rows
+from study.action_error import training_rows
 from torchrl_tels.data import load_dataset
 from torchrl_tels.modules import TSIDM
 
@@ -64,7 +64,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     config = yaml.safe_load((args.run_dir / "config.yaml").read_text())
     task = config["dataset"]["name"]
-    out = REPO / "benchmarks" / "reproduction" / "results" / "guide_fit" / f"{task}-seed{config['seed']}.json"
+    out = REPO / "study" / "results" / "guide_fit" / f"{task}-seed{config['seed']}.json"
     if skip_existing(out, args.force):
         return
     if not config["dataset"].get("size"):
