@@ -1,8 +1,8 @@
 """What the benchmark scripts share: launching the recipe, writing one result file, describing the machine.
 
 Every script under ``benchmarks/`` is a module of this package and runs from the repository
-root as ``python -m benchmarks.<script>`` (``python -m benchmarks.reproduction.<script>``), so
-scripts import each other and this module by their package names.
+root as ``python -m benchmarks.<script>`` (the reproduction study's as ``python -m study.<script>``),
+so scripts import each other and this module by their package names.
 
 * :func:`run_recipe` runs ``recipes/tels_offline.py`` in a subprocess with torch's threads
   pinned (``threads=`` and ``OMP_NUM_THREADS``), so a launcher never depends on what else runs.

@@ -29,7 +29,7 @@ def _seed():
 
 @pytest.fixture(scope="session")
 def finished_recipe_run(tmp_path_factory):
-    """A short recipe run on the paper's settings, for the readings of finished runs (``benchmarks.reproduction``).
+    """A short recipe run on the paper's settings, for the study's readings of finished runs (``study``).
 
     Two evaluation episodes: the batched (vector-env) evaluation runs between the value updates."""
     run_dir = tmp_path_factory.mktemp("finished_recipe_run") / "run"

@@ -1,8 +1,8 @@
-"""The paper-budget reading of ``benchmarks.reproduction.budget``, on made-up runs."""
+"""The paper-budget reading of ``study.budget``, on made-up runs."""
 import statistics
 
-from benchmarks.reproduction import budget
 from benchmarks.run_grid import PAPER_TABLE1
+from study import budget
 
 TASK = "walker2d-medium-v2-10k"
 

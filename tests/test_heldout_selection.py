@@ -3,7 +3,7 @@ import json
 import pytest
 from scipy import stats
 
-from benchmarks.reproduction import heldout_selection
+from study import heldout_selection
 
 
 def _result(scores, heldout_mse, seed=0):

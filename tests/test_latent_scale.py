@@ -108,7 +108,7 @@ def test_fitting_latent_statistics_needs_a_standardized_model():
 
 
 def test_task_table_reports_the_rollouts_realized_error_where_runs_recorded_it(monkeypatch):
-    from benchmarks.reproduction import latent_scale
+    from study import latent_scale
 
     def run(score, realized):
         evaluations = [{"score": score, "realized_error_ratio": r} for r in realized]
@@ -125,7 +125,7 @@ def test_task_table_reports_the_rollouts_realized_error_where_runs_recorded_it(m
 
 
 def test_an_arm_is_compared_with_the_preset_run_on_its_own_kind_of_cpu(monkeypatch):
-    from benchmarks.reproduction import latent_scale
+    from study import latent_scale
 
     def run(score, cpu):
         return {"final_normalized_score_mean": score, "evaluations": [{"score": score}], "machine": {"cpu": cpu}}

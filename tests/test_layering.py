@@ -1,5 +1,6 @@
 """The layers point one way: data knows no algorithm or environment; the library never imports a script;
-every name a module exports exists there."""
+every name a module exports exists there; the benchmarks never import the reproduction study (the study may
+import the benchmarks)."""
 from __future__ import annotations
 
 import ast
@@ -7,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "torchrl_tels"
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "torchrl_tels"
 
 #: package -> the torchrl_tels packages it must never import
 FORBIDDEN = {
@@ -42,7 +44,14 @@ def test_layer_imports_point_one_way(layer):
 def test_library_never_imports_a_script():
     offenders = [f"{path.relative_to(PACKAGE.parent)} imports {name}"
                  for path in sorted(PACKAGE.rglob("*.py")) for name in imported_modules(path)
-                 if name.split(".")[0] in ("recipes", "benchmarks", "tests", "scripts")]
+                 if name.split(".")[0] in ("recipes", "benchmarks", "study", "tests", "scripts")]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_benchmarks_never_import_the_study():
+    offenders = [f"{path.relative_to(REPO)} imports {name}"
+                 for path in sorted((REPO / "benchmarks").rglob("*.py")) for name in imported_modules(path)
+                 if name.split(".")[0] == "study"]
     assert not offenders, "\n".join(offenders)
 
 

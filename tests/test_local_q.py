@@ -1,4 +1,4 @@
-"""``benchmarks.reproduction.local_q``: the rows the return Q may fit, its held-out episodes, and a learning test
+"""``study.local_q``: the rows the return Q may fit, its held-out episodes, and a learning test
 where the return is a known function of state and action."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from benchmarks.reproduction import local_q, value_delivery
+from study import local_q, value_delivery
 
 
 def _episodes(lengths, terminated, seed=0):

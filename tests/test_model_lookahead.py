@@ -1,12 +1,12 @@
-"""``benchmarks.reproduction.model_lookahead``: the latent rollout against the TS-IDM's maps stepped by hand, and
+"""``study.model_lookahead``: the latent rollout against the TS-IDM's maps stepped by hand, and
 the one-step lookahead against ``model_selection``'s own reading of V at the predicted next latent."""
 from __future__ import annotations
 
 import pytest
 import torch
 
-from benchmarks.reproduction import model_lookahead, model_selection
-from benchmarks.reproduction.proposal_cap import load_finished_run
+from study import model_lookahead, model_selection
+from study.proposal_cap import load_finished_run
 from torchrl_tels.diagnostics import latent_statistics
 from torchrl_tels.modules import make_tels_actor
 

@@ -1,4 +1,4 @@
-"""``benchmarks.reproduction.model_selection``: the per-state rank correlation against the textbook formula,
+"""``study.model_selection``: the per-state rank correlation against the textbook formula,
 the candidates and the choice against a loop over the TS-IDM's maps by hand, and the own-candidate policy
 against the run's actor, action for action and score for score."""
 from __future__ import annotations
@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
-from benchmarks.reproduction import model_selection
-from benchmarks.reproduction.proposal_cap import load_finished_run
+from study import model_selection
+from study.proposal_cap import load_finished_run
 from torchrl_tels.envs import evaluate_policy, normalized_score
 from torchrl_tels.modules import make_tels_actor
 
@@ -139,7 +139,7 @@ def test_a_reading_at_its_own_horizon_reads_every_return_over_it(finished_recipe
 
 
 def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finished_recipe_run, monkeypatch):
-    from benchmarks.reproduction import local_q
+    from study import local_q
 
     monkeypatch.setattr(model_selection, "LOCAL_STATES", 12)  # local_q reads its states through model_selection
     monkeypatch.setattr(model_selection, "start_rows", lambda data: torch.arange(12))
@@ -157,7 +157,7 @@ def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finishe
     fitted = record["return_q"]
     assert -1.0 <= fitted["rank"] <= 1.0 and fitted["held_out_rows"] > 0 and fitted["steps"] == 30
     # the return Q fits, or holds out, exactly the training rows that record their 4-step return
-    from benchmarks.reproduction.value_delivery import known_returns, run_config
+    from study.value_delivery import known_returns, run_config
     from torchrl_tels.trainer import make_data
     data, _ = make_data(run_config(finished_recipe_run))
     assert fitted["rows"] + fitted["held_out_rows"] == int(known_returns(data, 4).sum())
@@ -166,7 +166,7 @@ def test_a_local_q_reading_reads_model_selections_candidates_and_returns(finishe
 
 def test_min_q_is_the_smaller_of_iqls_two_critics():
     from benchmarks.baselines import HYPERPARAMETERS, _build_iql
-    from benchmarks.reproduction.local_q import min_q
+    from study.local_q import min_q
     from torchrl.data import Bounded
 
     spec = Bounded(-torch.ones(3), torch.ones(3), shape=(3,))

@@ -1,4 +1,4 @@
-"""``benchmarks.reproduction.oracle_choice``: the lookahead's returns against the same rollouts replayed in a
+"""``study.oracle_choice``: the lookahead's returns against the same rollouts replayed in a
 fresh wrapped env, the choice against the largest of them, and the actor's window return against the run's
 actor played by hand."""
 from __future__ import annotations
@@ -10,10 +10,10 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from benchmarks.reproduction import oracle_choice
-from benchmarks.reproduction.model_selection import candidate_policies, own_action
-from benchmarks.reproduction.proposal_cap import load_finished_run
-from benchmarks.reproduction.value_delivery import run_config
+from study import oracle_choice
+from study.model_selection import candidate_policies, own_action
+from study.proposal_cap import load_finished_run
+from study.value_delivery import run_config
 from torchrl_tels.trainer import make_data
 
 GAMMA = 0.9

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from benchmarks.reproduction.proposal_cap import CappedStep
+from study.proposal_cap import CappedStep
 from tests.test_diagnostics import Offset
 
 

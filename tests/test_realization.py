@@ -1,4 +1,4 @@
-"""``benchmarks.reproduction.realization``: rollout readings of a finished run, checked against the library's
+"""``study.realization``: rollout readings of a finished run, checked against the library's
 own diagnostics, and the table they give."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 import yaml
 
-from benchmarks.reproduction import proposal_cap, realization
+from study import proposal_cap, realization
 from tests.test_export import make_run
 from torchrl_tels.diagnostics import rollout_statistics
 from torchrl_tels.envs import rollout_episodes

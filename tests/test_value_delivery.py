@@ -1,4 +1,4 @@
-"""``benchmarks.reproduction.value_delivery``: returns checked against direct loops, rollouts from data states
+"""``study.value_delivery``: returns checked against direct loops, rollouts from data states
 against the simulator stepped by hand, and the retrained V against a recipe run's own logged V losses."""
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from benchmarks.reproduction import realization, value_delivery
-from benchmarks.reproduction.proposal_cap import load_finished_run
+from study import realization, value_delivery
+from study.proposal_cap import load_finished_run
 from torchrl_tels.trainer import make_data
 
 

@@ -77,7 +77,7 @@ class TSIDMLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
     Appendix B.5 picks β as the one "with the lowest TS-IDM training loss";
     ``ell_total`` scales three of its terms by the candidate β itself and so
     leans toward the smallest one, while ``ell_sum`` compares candidates on one
-    objective (``benchmarks/reproduction/LOG.md``, "the β rule read two ways").
+    objective (``study/LOG.md``, "the β rule read two ways").
 
     ``select_out_keys`` keeps a subset of these entries (``out_keys_source``
     still lists them all); the objective is then the sum of the ``loss_*``

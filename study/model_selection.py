@@ -1,7 +1,7 @@
 """Can the TS-IDM's own forward model choose, among latent actions near the actor's, one that reaches more value?
 
-    python -m benchmarks.reproduction.model_selection --run-dir <run> --name <arm>-<task>-seed<k>
-    python -m benchmarks.reproduction.model_selection --table
+    python -m study.model_selection --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m study.model_selection --table
 
 ``value_delivery`` found that Eq. (9) reads V at a proposed latent that no action reaches: the promised gain
 is not delivered. The hypothesis here: V read where the TS-IDM's forward model says an action goes delivers.
@@ -41,7 +41,7 @@ The hypothesis is refuted if any of these fails:
 what happens later, a fall after step 100 included, which ``oracle_choice`` finds decides which candidate is
 better; 300 steps leave out about 5 % of the discounted return.
 
-Writes ``benchmarks/reproduction/results/model_selection/<name>.json`` (skipped if it exists unless ``--force``).
+Writes ``study/results/model_selection/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
@@ -56,17 +56,17 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from benchmarks.harness import REPO
-from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.proposal_cap import EPISODES, FinishedRun, load_finished_run, reading_main, RUN_FILES
-from benchmarks.reproduction.realization import step_from_observations
-from benchmarks.reproduction.value_delivery import (HORIZON, retrain_value, rollout_returns, run_config,
-                                                    start_rows, VALUE_CACHE)
+from study.latent_scale import run_results
+from study.proposal_cap import EPISODES, FinishedRun, load_finished_run, reading_main, RUN_FILES
+from study.realization import step_from_observations
+from study.value_delivery import (HORIZON, retrain_value, rollout_returns, run_config,
+                                  start_rows, VALUE_CACHE)
 from torchrl_tels.envs import evaluate_policy, normalized_score
 from torchrl_tels.modules import TSIDM
 from torchrl_tels.trainer import make_data
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_selection"
-COMMAND = "python -m benchmarks.reproduction.model_selection"
+RESULTS = REPO / "study" / "results" / "model_selection"
+COMMAND = "python -m study.model_selection"
 CANDIDATES = 16
 #: ``reading_main``'s option for the readings of these candidates' returns
 HORIZON_OPTION = {"horizon": {"type": int, "help": f"steps of every return read (default {HORIZON})"}}

@@ -1,7 +1,7 @@
 """Choice 6's evaluation protocol: the same runs' scores read four ways.
 
-    python -m benchmarks.reproduction.eval_reading
-    python -m benchmarks.reproduction.eval_reading --arms preset_avx512 alpha1 --against preset_avx512
+    python -m study.eval_reading
+    python -m study.eval_reading --arms preset_avx512 alpha1 --against preset_avx512
 
 The study scores a run by the mean of all ten evaluations (every 500 of its 5k policy steps),
 which counts the half-trained policies of the first steps as much as the last. The paper does
@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import statistics
 
-from benchmarks.reproduction.summary import (BETA_ARM, evaluation_scores, GRID, HERE, on_grid_budget, seed_results,
-                                             SHARED_BUDGET, TASKS)
+from study.summary import (BETA_ARM, evaluation_scores, GRID, HERE, on_grid_budget, seed_results,
+                           SHARED_BUDGET, TASKS)
 
 BASELINES = ("bc", "td3bc", "iql")
 READINGS = {

@@ -1,6 +1,6 @@
 """Is TELS's late decline the guide overfitting, and can held-out transitions pick the policy without an environment?
 
-    python -m benchmarks.reproduction.heldout_selection --task hopper-medium-v2-10k --seed 0
+    python -m study.heldout_selection --task hopper-medium-v2-10k --seed 0
 
 Hypothesis: on hopper-medium the score peaks at 4k-8k policy steps and then falls, while the
 guide's training state loss keeps falling (``benchmarks/results/long20k``), because the guide
@@ -22,7 +22,7 @@ it records the score and, on the trained and on the held-out transitions:
 
 (all from :func:`~torchrl_tels.diagnostics.action_chain_statistics`).
 
-Writes ``benchmarks/reproduction/results/heldout_selection/<task>-seed<k>.json`` (temp file +
+Writes ``study/results/heldout_selection/<task>-seed<k>.json`` (temp file +
 rename; skipped if it exists unless ``--force``); ``--table`` prints the table RESULTS.md holds and draws
 ``heldout_selection.png`` beside the JSONs.
 """
@@ -41,14 +41,14 @@ from hydra import compose, initialize_config_dir
 
 from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, save_figure, skip_existing,
                                 write_result)
-from benchmarks.reproduction.action_error import training_rows
+from study.action_error import training_rows
 from torchrl_tels.data import load_dataset
 from torchrl_tels.diagnostics import action_chain_statistics
 from torchrl_tels.envs import make_eval_envs
 from torchrl_tels.record import second_half_mean
 from torchrl_tels.trainer import evaluate, make_data, make_stage1, make_stage2, RunState
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "heldout_selection"
+RESULTS = REPO / "study" / "results" / "heldout_selection"
 
 
 def run(task: str, seed: int, size: int, steps: int, interval: int, tsidm_steps: int) -> dict:

@@ -1,6 +1,6 @@
 """Choice 5's budget on the MuJoCo preset: a longer stage 2 and a longer stage 1 against the study's.
 
-    python -m benchmarks.reproduction.budget
+    python -m study.budget
 
 The study compares every choice at 3k TS-IDM steps and 5k policy steps; the paper trains about
 36k and 100k. This reads two arms run on the preset (re-encoding, beta = 0.01, alpha = 1) against
@@ -28,9 +28,9 @@ from __future__ import annotations
 import argparse
 import statistics
 
-from benchmarks.reproduction.summary import (GRID, HERE, on_grid_budget, SHARED_BUDGET, TASKS, evaluation_scores,
-                                             seed_results)
 from benchmarks.run_grid import PAPER_TABLE1
+from study.summary import (GRID, HERE, on_grid_budget, SHARED_BUDGET, TASKS, evaluation_scores,
+                           seed_results)
 
 PRESET_ARMS = {task: "alpha1" if task.startswith("halfcheetah") else "alpha1_epyc" for task in TASKS}
 LONG_STAGE2 = ("long20k_preset", ["tsidm.steps=3000", "optim.steps=20000", "eval.interval=1000", "eval.episodes=10"])

@@ -20,9 +20,9 @@ dimensions; ``acting`` names the prediction the actor acts with (``reencode`` or
 trained on a ``dataset.size`` subset is also scored on the transitions it never saw (``held_out``),
 which separates fit from generalization::
 
-    python -m benchmarks.reproduction.action_error --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
+    python -m study.action_error --run-dir runs/full-default-seed0 --name paper_full-hopper-medium-seed0
 
-writes ``benchmarks/reproduction/results/action_error/<name>.json`` (temp file + rename; skipped if it
+writes ``study/results/action_error/<name>.json`` (temp file + rename; skipped if it
 exists unless ``--force``).
 """
 from __future__ import annotations
@@ -133,7 +133,7 @@ def main(argv=None) -> None:
     parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    out = REPO / "benchmarks" / "reproduction" / "results" / "action_error" / f"{args.name}.json"
+    out = REPO / "study" / "results" / "action_error" / f"{args.name}.json"
     if skip_existing(out, args.force):
         return
     for required in ("config.yaml", "tsidm.pt", "policy.pt"):

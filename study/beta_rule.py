@@ -1,7 +1,7 @@
 """App. B.5's beta rule read two ways: which beta has the lowest TS-IDM training loss?
 
-    python -m benchmarks.reproduction.beta_rule --task hopper-medium-v2-10k --seed 0 --beta 0.1
-    python -m benchmarks.reproduction.beta_rule --report
+    python -m study.beta_rule --task hopper-medium-v2-10k --seed 0 --beta 0.1
+    python -m study.beta_rule --report
 
 The paper selects beta of Eq. (7) from {0.01, 0.1, 1} as "the one with the lowest TS-IDM
 training loss". Eq. (7) is ell_rec + beta * (ell_dyn + ell_ode + ell_Tsym), so comparing that
@@ -30,7 +30,7 @@ from pathlib import Path
 
 from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
 
-OUT = REPO / "benchmarks" / "reproduction" / "results" / "beta_rule"
+OUT = REPO / "study" / "results" / "beta_rule"
 TSIDM_STEPS = 3000
 TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym")
 FULL_RUN_ARMS = {0.01: "beta0.01", 1.0: "reencode"}  # arms whose stage 1 ran at this beta and budget

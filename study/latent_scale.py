@@ -1,8 +1,8 @@
 """The latent-scale fixes of Eq. (7) against the preset, the paper's reading and BC, with the mechanism's numbers.
 
-    python -m benchmarks.reproduction.latent_scale
+    python -m study.latent_scale
 
-prints one table per dataset (``benchmarks.reproduction.tables`` writes it into RESULTS.md). Rows are
+prints one table per dataset (``study.tables`` writes it into RESULTS.md). Rows are
 arms at the shared budget (3k TS-IDM, 5k policy steps, ten evaluations of ten episodes):
 
 - ``paper``: the paper's reading (the baseline grid's TELS runs, Eq. 7 and Eq. 11 as written);
@@ -39,7 +39,7 @@ import re
 import statistics
 
 from benchmarks.harness import recorded_cpu
-from benchmarks.reproduction import summary
+from study import summary
 
 #: (row label, arm folders under results/ tried in order, or a grid method)
 ARMS = (
@@ -160,7 +160,7 @@ def shrink_table() -> list[str]:
                   key=lambda run: (run["option"], run["seed"]))
     if not runs:
         return []
-    lines = ["Stage 1 alone on hopper-medium-v2 10k, beta = 1 (`python -m benchmarks.reproduction.latent_shrink`); "
+    lines = ["Stage 1 alone on hopper-medium-v2 10k, beta = 1 (`python -m study.latent_shrink`); "
              "each entry is the mean of the four batch values logged up to that step (every 250 steps), "
              "except the first, one batch at step 250. "
              "step / spread is latent_step_rms / latent_rms: the dynamics' share of the latent space's size, "
@@ -244,7 +244,7 @@ def run_results(folder) -> dict[tuple[str, str, int], dict]:
 
 
 def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0])) -> list[str]:
-    """Where each arm's action error comes from, per seed (``python -m benchmarks.reproduction.action_error``)."""
+    """Where each arm's action error comes from, per seed (``python -m study.action_error``)."""
     records = run_results(summary.HERE / "results" / "action_error")
     rows = []
     for task in tasks:
@@ -261,7 +261,7 @@ def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0
     if not rows:
         return []
     return ["Where the action error comes from, on each run's own training transitions "
-            "(`python -m benchmarks.reproduction.action_error --run-dir <run> --name <arm>-<task>-seed<k>` on the saved "
+            "(`python -m study.action_error --run-dir <run> --name <arm>-<task>-seed<k>` on the saved "
             "runs): mean squared action error of Eq. (11) fed the true next latent (the TS-IDM's part), of the actor "
             "as it acts (guide proposal, re-encoded where the arm re-encodes), and of BC fitted by MSE on the same "
             "transitions (5k steps); then the guide's proposed latent step over the data's (RMS) and the mean "
@@ -272,7 +272,7 @@ def action_error_table(arms=ACTION_ERROR_ARMS, tasks=(*summary.TASKS, HELD_OUT[0
 
 def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
     """The runs whose proposals left the data's step scale, re-evaluated with the step capped
-    (``python -m benchmarks.reproduction.proposal_cap``)."""
+    (``python -m study.proposal_cap``)."""
     labels = dict((arm, label) for label, arm in arms)
     rows, caps = [], []
     records = run_results(summary.HERE / "results" / "proposal_cap")
@@ -287,7 +287,7 @@ def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
     if not rows:
         return []
     return ["The same saved runs re-evaluated with the guide's proposed step capped at k times the data's RMS latent "
-            "step (`python -m benchmarks.reproduction.proposal_cap --run-dir <run> --name <arm>-<task>-seed<k>`; no "
+            "step (`python -m study.proposal_cap --run-dir <run> --name <arm>-<task>-seed<k>`; no "
             "training; ten episodes per reading, the same episodes for every cap):", "",
             "| task | arm | seed | proposed / data step | " + " | ".join(caps) + " |",
             "|---|---|---|---|" + "---|" * len(caps), *rows, ""]

@@ -1,7 +1,7 @@
 """Is the value the guide promises delivered? V retrained as the run trained it, read from the data's states.
 
-    python -m benchmarks.reproduction.value_delivery --run-dir <run> --name <arm>-<task>-seed<k>
-    python -m benchmarks.reproduction.value_delivery --table
+    python -m study.value_delivery --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m study.value_delivery --table
 
 The hypothesis under test: with α = 1 the value term of Eq. (9) moves the guide's proposals to latents of
 higher V than the data's next latents, but the gain is V's extrapolation off the data, not a better state:
@@ -35,10 +35,10 @@ them or a recorded end), readings, each the median over states of a difference:
 * ``best_random``: the largest of the same delivered gain over ``RANDOM_ACTIONS`` actions drawn uniformly
   from the action box: how much V one step can change at all, against which ``promised`` is read;
 * ``horizon``: the discounted return over ``HORIZON`` steps from the data state, for the actor, for BC fitted
-  to the same transitions (:func:`~benchmarks.reproduction.action_error.train_bc`, ``BC_STEPS``), and the
+  to the same transitions (:func:`~study.action_error.train_bc`, ``BC_STEPS``), and the
   data's own recorded return; ``actor_over_bc``: the share of states where the actor's return is higher.
 
-Writes ``benchmarks/reproduction/results/value_delivery/<name>.json`` (skipped if it exists unless ``--force``).
+Writes ``study/results/value_delivery/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
@@ -54,18 +54,18 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.value.functional import reward2go
 
 from benchmarks.harness import REPO
-from benchmarks.reproduction.action_error import train_bc
-from benchmarks.reproduction.heldout_selection import spearman
-from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.proposal_cap import load_finished_run, reading_main, RUN_FILES
-from benchmarks.reproduction.realization import set_state_from_observation, step_from_observations
+from study.action_error import train_bc
+from study.heldout_selection import spearman
+from study.latent_scale import run_results
+from study.proposal_cap import load_finished_run, reading_main, RUN_FILES
+from study.realization import set_state_from_observation, step_from_observations
 from torchrl_tels.checkpoint import atomic_save
 from torchrl_tels.modules.actors import GUIDE_KEY
 from torchrl_tels.trainer import autocast, make_data, make_stage2
 from torchrl_tels.training import load_training_state
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "value_delivery"
-COMMAND = "python -m benchmarks.reproduction.value_delivery"
+RESULTS = REPO / "study" / "results" / "value_delivery"
+COMMAND = "python -m study.value_delivery"
 STATES = 1000
 HORIZON = 100
 #: γ^300 < 0.05: a return-to-go cut this far from the data's last step is within 5 % of the full one.

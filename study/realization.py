@@ -1,7 +1,7 @@
 """Do the states a TELS actor reaches land where its guide proposed? Rollouts of finished runs, no training.
 
-    python -m benchmarks.reproduction.realization --run-dir <run> --name <arm>-<task>-seed<k>
-    python -m benchmarks.reproduction.realization --table
+    python -m study.realization --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m study.realization --table
 
 The hypothesis under test: the value term of Eq. (9) raises V of the guide's proposals (α = 1 in the
 `mujoco` preset moves it by 4-24 %), yet the return does not rise, because the chain π_g → Eq. (11) →
@@ -14,7 +14,7 @@ Each reading is ten deterministic episodes of the run as trained (seeded alike f
 same guide's error on its own training transitions (``guide_error_ratio`` of
 :func:`~torchrl_tels.diagnostics.action_chain_statistics`): how well it predicts the data's next latent,
 the same quantity on states the behaviour policy visited. Writes
-``benchmarks/reproduction/results/realization/<name>.json`` (skipped if it exists unless ``--force``).
+``study/results/realization/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
@@ -28,15 +28,15 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from benchmarks.harness import REPO
-from benchmarks.reproduction.heldout_selection import spearman
-from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main
+from study.heldout_selection import spearman
+from study.latent_scale import run_results
+from study.proposal_cap import EPISODES, load_finished_run, reading_main
 from torchrl_tels.diagnostics import action_chain_statistics, rollout_statistics
 from torchrl_tels.envs import normalized_score, rollout_episodes
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "realization"
-COMMAND = "python -m benchmarks.reproduction.realization"
+RESULTS = REPO / "study" / "results" / "realization"
+COMMAND = "python -m study.realization"
 ROLLOUT_KEYS = ("guide_step_rms", "realized_error_ratio", "realized_step_cosine")
 #: The opening of every episode, read alone: a body that falls visits states no data holds, so the error
 #: over a whole episode partly measures the fall itself. Over the opening, which all but the shortest

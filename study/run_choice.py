@@ -1,9 +1,9 @@
 """One run of the reproduction study: the TELS recipe on one task and seed with a named set of overrides.
 
-    python -m benchmarks.reproduction.run_choice --name alpha0.1 --task hopper-medium-v2-10k --seed 0 \
+    python -m study.run_choice --name alpha0.1 --task hopper-medium-v2-10k --seed 0 \
         --budget budget=study eval.episodes=10 --override guide.alpha=0.1
 
-writes benchmarks/reproduction/results/<name>/<task>/seed<k>.json (the run's results.json plus
+writes study/results/<name>/<task>/seed<k>.json (the run's results.json plus
 the command, the guide options the config chose and the machine), and skips the run if that file
 exists unless ``--force`` (which rewrites it from the run folder under ``runs/reproduction/``,
 resumed rather than retrained). The baseline of a comparison is the same budget with no
@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 
 from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results"
+RESULTS = REPO / "study" / "results"
 #: What the recorded arms of a budget ran with beyond the budget group itself: at the study budget,
 #: one evaluation episode at a time (the recipe now batches them by default).
 PROTOCOL = {"budget=study": ["eval.batched=false"]}

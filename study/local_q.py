@@ -1,7 +1,7 @@
 """Does a Q, IQL's or one fitted to the data's returns, order one step's alternatives where TELS's V does not?
 
-    python -m benchmarks.reproduction.local_q --run-dir <run> --name <arm>-<task>-seed<k> [--horizon H]
-    python -m benchmarks.reproduction.local_q --table
+    python -m study.local_q --run-dir <run> --name <arm>-<task>-seed<k> [--horizon H]
+    python -m study.local_q --table
 
 ``model_selection`` reads, from a TELS run's start states, how well V at the state each of ``CANDIDATES``
 first actions reaches ranks the discounted return that follows (each candidate's action, then the actor).
@@ -22,7 +22,7 @@ with the return after (``rank``: does it order one state's actions?), and the re
 its choice among the candidates for the first step (``chosen_gain``), against the best candidate's gain
 (``best_gain``, the one-step oracle's), both over the actor's own.
 
-Writes ``benchmarks/reproduction/results/local_q/<name>.json`` (skipped if it exists unless ``--force``).
+Writes ``study/results/local_q/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
@@ -33,15 +33,15 @@ from torchrl.modules import MLP
 
 from benchmarks.baselines import train_baseline
 from benchmarks.harness import REPO
-from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.model_selection import (CANDIDATES, HORIZON_OPTION, local_returns, own_action,
-                                                     row_spearman, start_candidates, summary_of)
-from benchmarks.reproduction.proposal_cap import EPISODES, load_finished_run, reading_main
-from benchmarks.reproduction.value_delivery import HORIZON, known_returns, recorded_returns, run_config
+from study.latent_scale import run_results
+from study.model_selection import (CANDIDATES, HORIZON_OPTION, local_returns, own_action,
+                                   row_spearman, start_candidates, summary_of)
+from study.proposal_cap import EPISODES, load_finished_run, reading_main
+from study.value_delivery import HORIZON, known_returns, recorded_returns, run_config
 from torchrl_tels.trainer import make_data
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "local_q"
-COMMAND = "python -m benchmarks.reproduction.local_q"
+RESULTS = REPO / "study" / "results" / "local_q"
+COMMAND = "python -m study.local_q"
 IQL_STEPS = 20_000
 RETURN_Q_STEPS = 10_000
 RETURN_Q_BATCH = 256

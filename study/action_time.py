@@ -8,9 +8,9 @@ TELS runs (``runs/benchmarks/tels/<task>/seed<k>``, made by
 ``python -m benchmarks.run_grid --method tels``) and evaluates each final policy
 three ways on the same episode seeds::
 
-    python -m benchmarks.reproduction.action_time --task hopper-medium-v2-10k --seed 0 1 2 --episodes 20
+    python -m study.action_time --task hopper-medium-v2-10k --seed 0 1 2 --episodes 20
 
-writes ``benchmarks/reproduction/results/action_time/<task>/seed<k>.json``
+writes ``study/results/action_time/<task>/seed<k>.json``
 (temp file + rename; skipped if it exists unless ``--force``). ``--work-dir`` and
 ``--results-name`` point it at other runs, e.g. the paper-budget ones; ``--runs`` names the
 folder of ``run_choice.py`` variants (``--work-dir runs/reproduction --runs latent2x``).
@@ -46,13 +46,13 @@ def main(argv=None) -> None:
     parser.add_argument("--runs", default="tels", help="folder under --work-dir holding <task>/seed<k> runs; "
                         "e.g. --work-dir runs/reproduction --runs latent2x for run_choice's runs")
     parser.add_argument("--results-name", default="action_time",
-                        help="results land in benchmarks/reproduction/results/<this>/<task>/seed<k>.json")
+                        help="results land in study/results/<this>/<task>/seed<k>.json")
     parser.add_argument("--force", action="store_true")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     task = get_task(args.task)
     for seed in args.seed:
-        out = REPO / "benchmarks" / "reproduction" / "results" / args.results_name / args.task / f"seed{seed}.json"
+        out = REPO / "study" / "results" / args.results_name / args.task / f"seed{seed}.json"
         if skip_existing(out, args.force):
             continue
         run_dir = args.work_dir / args.runs / args.task / f"seed{seed}"

@@ -1,6 +1,6 @@
 """BC on the held-out set: a 10k subset of the HalfCheetah-v5 SAC data, at the study's budget.
 
-    python -m benchmarks.reproduction.heldout_bc --seed 0
+    python -m study.heldout_bc --seed 0
 
 trains TorchRL's ``BCLoss`` baseline (``benchmarks.baselines``) on the same whole episodes the recipe
 takes with ``dataset.size=10000`` and that seed (``torchrl_tels.data.subset_dataset``), for 5k steps
@@ -25,7 +25,7 @@ def main():
     parser.add_argument("--seed", type=int, required=True)
     parser.add_argument("--force", action="store_true", help="rewrite the result if it exists")
     args = parser.parse_args()
-    out = REPO / "benchmarks" / "reproduction" / "results" / "heldout_bc" / TASK / f"seed{args.seed}.json"
+    out = REPO / "study" / "results" / "heldout_bc" / TASK / f"seed{args.seed}.json"
     if skip_existing(out, args.force):
         return
     source = shared_datasets_dir() / "halfcheetah-v5-sac" / "medium-100k.npz"

@@ -1,7 +1,7 @@
 """Does the TS-IDM's forward model, rolled several steps ahead, order one step's alternatives where one step does not?
 
-    python -m benchmarks.reproduction.model_lookahead --run-dir <run> --name <arm>-<task>-seed<k> [--horizon H]
-    python -m benchmarks.reproduction.model_lookahead --table
+    python -m study.model_lookahead --run-dir <run> --name <arm>-<task>-seed<k> [--horizon H]
+    python -m study.model_lookahead --table
 
 ``model_selection`` reads V at the next latent Eq. (6)'s forward model predicts for each candidate: within a
 state, its rank with the discounted return that follows the candidate (``local``: its action, then the actor)
@@ -20,21 +20,21 @@ actor's own candidate has moved from its start, per L, the RMS of z_L − z₀ o
 (a model that stays put scores its start); ``spread``, the data's own RMS distance of a latent from their mean
 in the same unit, against which a drift far larger says the rollout has left the data's latent region.
 
-Writes ``benchmarks/reproduction/results/model_lookahead/<name>.json`` (skipped if it exists unless ``--force``).
+Writes ``study/results/model_lookahead/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
 import torch
 
 from benchmarks.harness import REPO
-from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.model_selection import (CANDIDATES, HORIZON_OPTION, LatentActionChoice, local_returns,
-                                                     own_action, read_candidates, row_spearman)
-from benchmarks.reproduction.proposal_cap import reading_main, RUN_FILES
-from benchmarks.reproduction.value_delivery import HORIZON
+from study.latent_scale import run_results
+from study.model_selection import (CANDIDATES, HORIZON_OPTION, LatentActionChoice, local_returns,
+                                   own_action, read_candidates, row_spearman)
+from study.proposal_cap import reading_main, RUN_FILES
+from study.value_delivery import HORIZON
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "model_lookahead"
-COMMAND = "python -m benchmarks.reproduction.model_lookahead"
+RESULTS = REPO / "study" / "results" / "model_lookahead"
+COMMAND = "python -m study.model_lookahead"
 LOOKAHEADS = (1, 2, 5, 10, 20, 50, 100)
 
 

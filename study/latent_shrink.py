@@ -1,6 +1,6 @@
 """Does the latent space shrink as stage 1 trains longer? Eq. (7) as written against the two scale fixes.
 
-    python -m benchmarks.reproduction.latent_shrink --steps 9000 --seed 0
+    python -m study.latent_shrink --steps 9000 --seed 0
 
 trains stage 1 alone (the recipe's TS-IDM and Eq. (7), ``torchrl_tels.trainer.fit_tsidm``) on
 hopper-medium-v2 10k with beta = 1 for each ``tsidm.latent_scale`` (``free``: Eq. (7) as written;
@@ -25,7 +25,7 @@ from torchrl_tels.data import load_dataset
 from torchrl_tels.trainer import fit_tsidm, RunState
 
 OPTIONS = ("free", "standardized", "relative")
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "latent_shrink"
+RESULTS = REPO / "study" / "results" / "latent_shrink"
 
 
 def main():

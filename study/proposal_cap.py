@@ -1,13 +1,13 @@
 """Does capping the guide's proposed latent step rescue a run whose proposals leave the data's step scale?
 
-    python -m benchmarks.reproduction.proposal_cap --run-dir <run> --name <arm>-<task>-seed<k> --caps 1 2
+    python -m study.proposal_cap --run-dir <run> --name <arm>-<task>-seed<k> --caps 1 2
 
 re-evaluates a finished recipe run (``config.yaml``, ``tsidm.pt``, ``policy.pt``, ``results.json``) with its own actor
 options, once as trained and once per cap k with the guide's step π_g(z) - z scaled down, per state, to at
 most k times the RMS latent step √E‖φ_s(s') - φ_s(s)‖² of its training data (no training). Each reading is ten
 deterministic episodes, seeded alike for every cap. If proposals far off the data's step scale (the
 ``proposed / data step`` column of the action-error table) caused a run's low score, a cap would lift it.
-Writes ``benchmarks/reproduction/results/proposal_cap/<name>.json`` (skipped if it exists unless ``--force``).
+Writes ``study/results/proposal_cap/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from benchmarks.harness import invocation, machine_description, REPO, repo_relative, skip_existing, write_result
-from benchmarks.reproduction.action_error import training_rows
+from study.action_error import training_rows
 from torchrl_tels.checkpoint import load_checkpoint
 from torchrl_tels.data import load_dataset
 from torchrl_tels.diagnostics import latent_statistics
@@ -156,7 +156,7 @@ def main(argv=None) -> None:
         parser.error("--caps must be positive")
     check_finished_run(parser, args.run_dir)
     torch.set_num_threads(args.threads)
-    out = REPO / "benchmarks" / "reproduction" / "results" / "proposal_cap" / f"{args.name}.json"
+    out = REPO / "study" / "results" / "proposal_cap" / f"{args.name}.json"
     if skip_existing(out, args.force):
         return
     record = capped_scores(args.run_dir, args.caps)

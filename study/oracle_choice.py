@@ -1,7 +1,7 @@
 """What would a perfect value gain from choosing among one step's alternatives?
 
-    python -m benchmarks.reproduction.oracle_choice --run-dir <run> --name <arm>-<task>-seed<k>
-    python -m benchmarks.reproduction.oracle_choice --table
+    python -m study.oracle_choice --run-dir <run> --name <arm>-<task>-seed<k>
+    python -m study.oracle_choice --table
 
 ``model_selection`` found that V cannot order the candidates near the actor's latent action by the return
 that follows them, although the simulator makes that return predictable. This reading bounds what a value
@@ -20,7 +20,7 @@ undiscounted return of each (the paired change and how many episodes are up), ho
 If the oracle gains much, the candidates hold an improvement and a value with that resolution is what TELS
 lacks; if it gains little, no value can rescue a choice this local.
 
-Writes ``benchmarks/reproduction/results/oracle_choice/<name>.json`` (skipped if it exists unless ``--force``).
+Writes ``study/results/oracle_choice/<name>.json`` (skipped if it exists unless ``--force``).
 """
 from __future__ import annotations
 
@@ -32,14 +32,14 @@ import torch
 from tqdm import tqdm
 
 from benchmarks.harness import REPO
-from benchmarks.reproduction.latent_scale import run_results
-from benchmarks.reproduction.model_selection import candidate_policies, CANDIDATES, own_action
-from benchmarks.reproduction.proposal_cap import load_finished_run, reading_main
-from benchmarks.reproduction.value_delivery import discounted_returns, run_config
+from study.latent_scale import run_results
+from study.model_selection import candidate_policies, CANDIDATES, own_action
+from study.proposal_cap import load_finished_run, reading_main
+from study.value_delivery import discounted_returns, run_config
 from torchrl_tels.trainer import make_data
 
-RESULTS = REPO / "benchmarks" / "reproduction" / "results" / "oracle_choice"
-COMMAND = "python -m benchmarks.reproduction.oracle_choice"
+RESULTS = REPO / "study" / "results" / "oracle_choice"
+COMMAND = "python -m study.oracle_choice"
 LOOKAHEAD = 100
 EPISODES = 3
 STEPS = 300

@@ -1,8 +1,8 @@
 """One table of every training-time variant of the reproduction study, at the shared budget.
 
-    python -m benchmarks.reproduction.summary
+    python -m study.summary
 
-prints it (``benchmarks.reproduction.tables`` writes it into RESULTS.md with the study's other tables).
+prints it (``study.tables`` writes it into RESULTS.md with the study's other tables).
 
 Rows are the variants under ``results/<variant>/`` that ran with the shared budget
 (``run_choice --budget tsidm.steps=3000 optim.steps=5000 eval.interval=500 eval.episodes=10``)
@@ -31,10 +31,10 @@ import json
 import statistics
 from pathlib import Path
 
-from benchmarks.harness import recorded_cpu
+from benchmarks.harness import recorded_cpu, REPO
 
 HERE = Path(__file__).resolve().parent
-GRID = HERE.parent / "results"
+GRID = REPO / "benchmarks" / "results"  # the baseline grid's results
 SHARED_BUDGET = ["tsidm.steps=3000", "optim.steps=5000", "eval.interval=500", "eval.episodes=10"]
 GRID_BUDGET = ("--steps=5000", "--tsidm-steps=3000", "--eval-interval=500", "--eval-episodes=10")
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")
