@@ -181,12 +181,12 @@ def main():
         for mode in modes:
             ratio = f"{ms['eager'] / ms[mode]:8.2f}x" if "eager" in ms else "       -"
             print(f"{mode:18s} {ms[mode]:8.2f} {1e3 / ms[mode]:9.1f} {ratio} {warmup_s[mode]:10.1f}")
+        if args.json:  # after each stage, so that a run stopped at a time cap keeps what it measured
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(figures, indent=2))
         if args.profile:
             for mode in modes:
                 print_profile(stage, mode, steps[mode], args.steps, device)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2))
 
 
 if __name__ == "__main__":
