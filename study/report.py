@@ -230,7 +230,8 @@ def table1(d: Data) -> list[str]:
         + "".join(f"; {', '.join(cells)}: {verdict_}" for verdict_, cells in sorted(moving.items()))
         + ". The halfcheetah-v5 row is the HalfCheetah-v5 SAC set at its full size, evaluated on HalfCheetah-v5 with "
         "the halfcheetah references ([DATA_SIZE.md](../benchmarks/results/data_size/DATA_SIZE.md); its TELS ran the "
-        "default); nothing ran on it at a longer budget or in the paper's reading.", ""]
+        "recipe's default of its date, `budget=study`); nothing ran on it at a longer budget or in the paper's "
+        "reading.", ""]
     return lines
 
 
