@@ -414,6 +414,7 @@ def check_yourself(d: Data) -> list[str]:
                 pairs.append(abs(a[seed]["final_normalized_score_mean"] - b[seed]["final_normalized_score_mean"]))
     elapsed = [r["elapsed_s"] for runs in (first, second) for r in runs.values() if r.get("elapsed_s")]
     cpus = [recorded_cpu(runs[CHECK_SEED]) for runs in (first, second)]
+    bc = d.study[CHECK_TASK]["bc"][0]  # the grid's BC, lowest seed
     return [
         "## Check one number yourself", "",
         f"The default on {CHECK_TASK}, seed {CHECK_SEED}, at the study budget, one thread, as the study ran it "
@@ -431,7 +432,15 @@ def check_yourself(d: Data) -> list[str]:
         f"on the two CPUs differ by {statistics.mean(pairs):.1f} points on average and by up to {max(pairs):.1f} "
         f"over the {len(pairs)} (set, seed) pairs both ran, so expect a number within that spread, not the digits. "
         "The recorded runs come from the commits of their dates; this command at today's commit was not rerun for "
-        "this page.", ""]
+        "this page. The default run alone on the machine, at two threads, is timed in "
+        "[BENCHMARKS.md](../BENCHMARKS.md#the-default-run-measured-the-mujoco-presets-budget).",
+        "", f"Quicker, a cell of the baseline grid: BC on {CHECK_TASK}, seed {bc['seed']}, at the study budget:", "",
+        "```bash",
+        f"OMP_NUM_THREADS=1 .venv/bin/python -m benchmarks.run_grid --method bc --task {CHECK_TASK} --seed {bc['seed']} \\",
+        "    --steps 5000 --eval-interval 500 --eval-episodes 10 --threads 1 --wandb-mode disabled --results-dir runs/check",
+        "```", "",
+        f"prints its final normalized score; the grid recorded {bc['final_normalized_score_mean']:.1f} "
+        f"in {bc['elapsed_s']:.0f} s, one of the three seeds behind the BC cell above.", ""]
 
 
 def render() -> str:
