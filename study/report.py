@@ -101,7 +101,7 @@ class Data:
         return _final(self.study[task][column])
 
     def longer_scores(self, task: str, column: str) -> list[float]:
-        """Second-half means: Table 1's last 10 of 20 evaluations at 50k and 100k steps, the last 5 of 10 at 20k."""
+        """Second-half means (:func:`torchrl_tels.record.second_half_mean`): Table 1's reading at any budget."""
         return [second_half_mean(r["evaluations"]) for r in self.longer[task][column]]
 
     def study_matrix(self, column: str):
@@ -207,26 +207,37 @@ def table1(d: Data) -> list[str]:
     no_trend = not_flat.get("no trend detected", [])
     moving = {v: cells for v, cells in not_flat.items() if v != "no trend detected"}
     cells_longer = sum(1 for t in TASKS for m in BASELINES if (t, m) in d.picks)
+    budget_ = dict(item.split("=") for item in summary.SHARED_BUDGET)
+    study_steps = lambda key: run_grid._steps_label(int(budget_[key]))
+    longer_runs = [r for t in TASKS for runs in d.longer[t].values() for r in runs]
+    readings = {}  # {policy steps: number of evaluations} of the longer runs
+    for r in longer_runs:
+        readings.setdefault(_steps(r), len(r["evaluations"]))
+    baseline_steps = sorted({_steps(r) for t in TASKS for m in BASELINES for r in d.longer[t][m]})
     lines += [
         "",
-        "Table 1's values are as the paper prints them (`benchmarks.run_grid.PAPER_TABLE1`): mean ± std over 5 seeds "
-        "at 100k policy steps, no interval, one TELS column. "
+        "Table 1's values are as the paper prints them (`benchmarks.run_grid.PAPER_TABLE1`): mean ± std over seeds at "
+        f"{run_grid._steps_label(run_grid.PAPER_POLICY_STEPS)} policy steps, no interval, one TELS column. "
         "Ours: the mean over seeds, its 95 % Student-t interval, mean ± t(0.975, n − 1)·s/√n with s the seeds' sample "
         "standard deviation (`benchmarks.aggregate.t_interval`), and n. A t-interval, because with three seeds a "
         "bootstrap can draw only ten distinct resamples and its interval stays inside the seeds' range, understating "
         "how little three seeds pin down; n=1 gets no interval. "
-        "**Study budget**: 3k TS-IDM and 5k policy steps (baselines: 5k), ten evaluations of ten episodes, the score "
-        "their mean; TELS in the paper's reading is the baseline grid's TELS "
+        f"**Study budget**: {study_steps('tsidm.steps')} TS-IDM and {study_steps('optim.steps')} policy steps "
+        f"(baselines: {study_steps('optim.steps')}), an evaluation of {budget_['eval.episodes']} episodes every "
+        f"{budget_['eval.interval']} steps, the score the mean of all of them; TELS in the paper's reading is the baseline grid's TELS "
         f"([TABLE.md](../benchmarks/results/TABLE.md)), the default is the `{DEFAULT_SOURCES[0]}` arm "
         "([RESULTS.md](RESULTS.md#every-arm-per-task)). "
-        "**Longer**: TELS at the paper's whole budget, 100k policy steps (`paper_full`: the paper's reading, the "
-        "recipe's default run of the time; `paper_budget_preset`: the default, `budget=paper`); each baseline at the "
-        "longest budget it was run at, 20k or 50k policy steps ([TABLE.md, \"Each method at its longest budget\"]"
-        "(../benchmarks/results/TABLE.md#each-method-at-its-longest-budget)). The score is then the mean of the later "
-        "half of the evaluations: Table 1's last 10 of 20 at 100k and 50k, the last 5 of 10 at 20k. "
+        f"**Longer**: TELS at the paper's whole budget, {run_grid._steps_label(run_grid.PAPER_POLICY_STEPS)} policy "
+        "steps (`paper_full`: the paper's reading, the recipe's default run of the time; `paper_budget_preset`: the "
+        "default, `budget=paper`); each baseline at the longest budget it was run at, "
+        + " or ".join(run_grid._steps_label(n) for n in baseline_steps) + " policy steps ([TABLE.md, \"Each method "
+        "at its longest budget\"](../benchmarks/results/TABLE.md#each-method-at-its-longest-budget)). The score is "
+        "then the mean of the later half of the evaluations, as Table 1 reads its runs: "
+        + ", ".join(f"the last {n - n // 2} of {n} at {run_grid._steps_label(steps)}"
+                    for steps, n in sorted(readings.items(), reverse=True)) + ". "
         f"No baseline's longest curve passes the grid's flatness test (its trend ± twice its standard error within "
         f"{run_grid.FLAT_POINTS:g} points): on {len(no_trend)} of {cells_longer} cells the test detects no trend but "
-        "cannot call the curve flat (ten episodes per evaluation leave bands several points wide)"
+        "cannot call the curve flat (the evaluations' scatter leaves bands several points wide)"
         + "".join(f"; {', '.join(cells)}: {verdict_}" for verdict_, cells in sorted(moving.items()))
         + ". The halfcheetah-v5 row is the HalfCheetah-v5 SAC set at its full size, evaluated on HalfCheetah-v5 with "
         "the halfcheetah references ([DATA_SIZE.md](../benchmarks/results/data_size/DATA_SIZE.md); its TELS ran the "
@@ -290,10 +301,11 @@ def mechanisms(d: Data) -> list[str]:
         f"(rank correlation {min(r['value']['rank_with_return_to_go'] for r in delivery):.2f} to "
         f"{max(r['value']['rank_with_return_to_go'] for r in delivery):.2f}), so the promise is V's extrapolation to "
         "latents no action reaches ([RESULTS.md](RESULTS.md#is-the-value-the-guide-promises-delivered)).", "",
-        "**The improvement is there, one step away, and no learned value sees it.** Among 16 latent actions around the "
-        "actor's own, V's rank correlation with the return that follows is "
+        "**The improvement is there, one step away, and no learned value sees it.** Among the actor's latent "
+        f"action and {model_selection.CANDIDATES - 1} perturbations of it, V's rank correlation with the return that follows is "
         f"{min(r['value_rank'] for r in local):.2f} to {max(r['value_rank'] for r in local):.2f} on the hopper and "
-        f"walker2d runs read, where the ceiling of any ranking (the same returns after first actions nudged by 1 %) "
+        f"walker2d runs read, where the ceiling of any ranking (the same returns after first actions nudged by "
+        f"{model_selection.NUDGE:.0%} of the action box's half-width) "
         f"is {min(r['repeat_rank'] for r in local):.2f} to {max(r['repeat_rank'] for r in local):.2f} "
         "([RESULTS.md](RESULTS.md#can-the-ts-idms-forward-model-choose-an-action-that-delivers)); IQL's Q and a Q "
         "fitted to the data's own returns also stay far below that ceiling ([RESULTS.md](RESULTS.md#does-a-q-iqls-or-one-fitted-to-the-"
@@ -377,7 +389,10 @@ def deviations(d: Data) -> list[str]:
         ("α of λ_α, Eq. (9)", "0.01", "1", "`guide.alpha=0.01`",
          f"{_pooled(changes['alpha1'])} (`alpha1`); {_pooled(changes['alpha1_epyc'])} on the other CPU (`alpha1_epyc`)",
          f"[paired changes]({paired})"),
-        ("training length", "1000 epochs + 100k steps", "3k + 5k steps", "`budget=paper`",
+        ("training length", f"{run_grid.PAPER_TSIDM_EPOCHS} epochs + "
+         f"{run_grid._steps_label(run_grid.PAPER_POLICY_STEPS)} steps",
+         " + ".join(run_grid._steps_label(int(o.split("=")[1])) for o in summary.SHARED_BUDGET[:2]) + " steps",
+         "`budget=paper`",
          f"the paper's budget scores {statistics.mean(budget_changes):+.1f} on average against the study budget's "
          f"seed mean, lower on {sum(c < 0 for c in budget_changes)} of {len(budget_changes)} sets (one seed each)",
          "[longer budgets](RESULTS.md#longer-budgets-on-the-preset)"),
