@@ -128,6 +128,18 @@ def _iqm_text(matrix) -> str:
     return f"{point:.1f} [{low:.1f}, {high:.1f}]"
 
 
+def _relation(matrix, other) -> str:
+    """Where one IQM stands against another: above or below where their 95 % intervals are apart, else level."""
+    (_, low, high), (_, other_low, other_high) = _estimate(matrix), _estimate(other)
+    return "above" if low > other_high else "below" if high < other_low else "level with"
+
+
+def _mean_text(matrix) -> str:
+    """The mean over tasks × seeds and its stratified-bootstrap 95 % interval."""
+    point, low, high = run_grid._interval_estimates({"m": matrix})["m"][1]
+    return f"{point:.1f} [{low:.1f}, {high:.1f}]"
+
+
 def _target(task: str) -> float:
     """The study's target on a set: Table 1's TELS mean minus its std."""
     mean, std = run_grid.PAPER_TABLE1[task]["tels"]
@@ -149,20 +161,24 @@ def verdict(d: Data) -> list[str]:
     named = lambda tasks: ", ".join(t.removesuffix("-v2-10k") for t in tasks) or "none"
     return [
         "## Verdict", "",
-        f"**{word}.** Table 1's TELS averages {paper_tels:.1f} over the four D4RL-10k locomotion sets. Ours, in the "
-        f"default (`domain=mujoco`) at the study budget, has an interquartile mean of {_iqm_text(d.study_matrix('tels_default'))} "
-        f"over {d.study_matrix('tels_default').shape[0]} seeds × {len(TASKS)} sets (95 % stratified-bootstrap "
-        f"interval, `benchmarks/aggregate.py`), against {_iqm_text(d.study_matrix('bc'))} for our BC on the same files "
-        f"and budget and {_iqm_text(d.study_matrix('tels_paper'))} in the paper's reading. The default reaches Table "
+        f"**{word}.** Table 1's TELS averages {paper_tels:.1f} over the four D4RL-10k locomotion sets; ours, in the "
+        f"default (`domain=mujoco`) at the study budget, averages {_mean_text(d.study_matrix('tels_default'))} over "
+        f"{d.study_matrix('tels_default').shape[0]} seeds × {len(TASKS)} sets (95 % stratified-bootstrap intervals, "
+        "`benchmarks/aggregate.py`; \"level\" below: the two intervals overlap). Its interquartile mean, "
+        f"{_iqm_text(d.study_matrix('tels_default'))}, is {_relation(d.study_matrix('tels_default'), d.study_matrix('bc'))} "
+        f"our BC's on the same files and budget, {_iqm_text(d.study_matrix('bc'))}, and "
+        f"{_relation(d.study_matrix('tels_default'), d.study_matrix('tels_paper'))} the paper's reading's, "
+        f"{_iqm_text(d.study_matrix('tels_paper'))}. The default reaches Table "
         f"1's mean − std on {len(reached_study)} of {len(TASKS)} sets ({named(reached_study)}). At the paper's budget, "
         f"one seed per set, the default reaches it on {len(reached_paper)} of {len(paper_budget)} "
         f"({named(reached_paper)}), and the paper's reading, run there on hopper-medium only, scores "
         + (f"{full[0]:.1f} against Table 1's {run_grid.PAPER_TABLE1['hopper-medium-v2-10k']['tels'][0]:.1f}. "
            if full else "nothing (no runs). ")
         + f"Our baselines are not where Table 1 has them: trained to its longest budget "
-        f"({bc_label.removeprefix('BC at ')}) our BC has an IQM of {_iqm_text(bc_long)}, where Table 1's BC averages "
-        f"{paper_bc:.1f}, and the default at its own longest ({tels_label.removeprefix('TELS at ')}) has "
-        f"{_iqm_text(tels_long)}. The study traces the gap to "
+        f"({bc_label.removeprefix('BC at ')}) our BC averages {_mean_text(bc_long)}, where Table 1's BC averages "
+        f"{paper_bc:.1f}, and its IQM, {_iqm_text(bc_long)}, is {_relation(bc_long, tels_long)} the default's at its "
+        "own longest "
+        f"({tels_label.removeprefix('TELS at ')}), {_iqm_text(tels_long)}. The study traces the gap to "
         "the values: learned from 10k transitions, they order states but not one state's alternatives, so the gain "
         "the guide promises is never delivered, and TELS acts much as BC does (mechanisms below).", ""]
 
