@@ -307,7 +307,7 @@ def mechanisms(d: Data) -> list[str]:
         f"written its RMS spread fell from {rms[0][1]:.3f} at step {rms[0][0]} to "
         f"{latent_scale._around(rms, shrink['steps']):.3f} after {shrink['steps'] // 1000}k steps (hopper-medium, one "
         "seed). The fixes that remove the symmetry score "
-        + ("below" if all(iqm < default_iqm for iqm, _, _ in fixes.values()) else "no consistently better than")
+        + ("below" if all(iqm < default_iqm for iqm, _, _ in fixes.values()) else "not consistently better than")
         + " the default over the four sets (IQM "
         + ", ".join(f"{label} {iqm:.1f}" for label, (iqm, _, _) in fixes.items())
         + f", against {default_iqm:.1f}), so the default keeps Eq. (7) as written, with β = 0.01 chosen on scores "
