@@ -18,7 +18,6 @@ import difflib
 import json
 import statistics
 import sys
-from pathlib import Path
 
 from benchmarks import aggregate, data_size, representations, run_grid
 from benchmarks.harness import recorded_cpu, repo_relative
