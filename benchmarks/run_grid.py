@@ -40,6 +40,7 @@ import time
 import warnings
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 import yaml
@@ -630,18 +631,24 @@ def longer_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str
             "verdict | results |", "|---|---|---|---|---|---|---|---|---|", *rows]
 
 
-def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], results_dir: Path) -> list[str]:
-    """Each method on each set at the longest budget it was run at, among this grid's and the ``--longer``
-    folders' (at equal budgets, the folder named last), with every budget's verdict on its curve
-    (:func:`curve_verdict`): the longest, because a curve flat over a short run can still move later. Runs
-    group by budget and evaluation protocol, so a score never mixes two protocols. The score is the
-    second-half mean (:func:`torchrl_tels.record.second_half_mean`), so that budgets with different numbers
-    of evaluations are read alike. Then the aggregate over the four shared sets, with the same intervals as
-    :func:`aggregate_section` and a PNG of its own."""
-    import numpy as np
+class LongestPick(NamedTuple):
+    """One method on one set at the longest budget it was run at (:func:`longest_budget_picks`)."""
+    steps: int  # its policy steps
+    label: str  # the budget as the table names it (with folder and protocol where two share the steps)
+    runs: list  # its result records, one per seed
+    verdict: str  # the verdict on that budget's curve (:func:`curve_verdict`), markdown emphasis included
+    flat: bool
+    tried: list  # [(steps, label, runs, (verdict, flat))] of every budget run, shortest first
+    differ: list  # hyperparameter names whose values differ between its runs
 
+
+def longest_budget_picks(found: dict, longer: dict[Path, dict], tasks: list[str],
+                         results_dir: Path) -> dict[tuple[str, str], LongestPick]:
+    """``{(task, method): pick}``: each method on each set at the longest budget it was run at, among this grid's
+    (``found``, from ``results_dir``) and the ``--longer`` folders' (at equal budgets, the folder named last).
+    Runs group by budget and evaluation protocol, so a pick never mixes two protocols."""
     grids = [(results_dir, found), *longer.items()]
-    picks, rows = {}, []
+    picks = {}
     for task in tasks + sorted({t for g in longer.values() for t in g} - set(tasks)):
         for method in TABLE_COLUMNS:
             groups: dict[tuple, list] = {}
@@ -664,13 +671,49 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
                     label += f" ({repo_relative(grids[i][0])}, {episodes} ep. every {_steps_label(interval)})"
                 tried.append((steps, label, runs, curve_verdict(runs)[1:]))
             steps, label, runs, (verdict, flat) = tried[-1]
-            differ = _differing_hyperparameters(runs, method, task)
-            picks[task, method] = steps, runs, verdict.strip("*"), differ
-            read_at = label + ("" if flat else f" ({verdict})")
-            if differ:
-                read_at += f"; **hyperparameters differ: {', '.join(differ)}**"
-            rows.append(f"| {task} | {LABELS[method]} | " + " · ".join(f"{t[1]}: {t[3][0]}" for t in tried)
-                        + f" | {read_at} | {_mean_cell([second_half_mean(r['evaluations']) for r in runs])} |")
+            picks[task, method] = LongestPick(steps, label, runs, verdict, flat, tried,
+                                              _differing_hyperparameters(runs, method, task))
+    return picks
+
+
+def longest_budget_matrices(picks: dict[tuple[str, str], LongestPick]) -> dict:
+    """``{label: [seeds, tasks] second-half scores}`` over the four shared sets, one per method picked on all
+    four, its label naming the budgets and every verdict but flat (:func:`longest_budget_section`'s aggregate)."""
+    import numpy as np
+
+    matrices = {}
+    for method in TABLE_COLUMNS:
+        if not all((task, method) in picks for task in AGGREGATE_TASKS):
+            continue
+        by_task = [{r["seed"]: second_half_mean(r["evaluations"]) for r in picks[task, method].runs}
+                   for task in AGGREGATE_TASKS]
+        seeds = sorted(set.intersection(*(set(d) for d in by_task)))
+        if not seeds:
+            continue
+        budgets = sorted({picks[task, method].steps for task in AGGREGATE_TASKS})
+        verdicts = collections.Counter(picks[task, method].verdict.strip("*") for task in AGGREGATE_TASKS)
+        label = (f"{LABELS[method]} at " + " / ".join(_steps_label(b) for b in budgets) + " steps"
+                 + "".join(f", {verdict} on {n} of {len(AGGREGATE_TASKS)}"
+                           for verdict, n in sorted(verdicts.items()) if verdict != "flat")
+                 + (", **hyperparameters differ**" if any(picks[t, method].differ for t in AGGREGATE_TASKS) else ""))
+        matrices[label] = np.array([[d[s] for d in by_task] for s in seeds])
+    return matrices
+
+
+def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[str], results_dir: Path) -> list[str]:
+    """Each method on each set at the longest budget it was run at (:func:`longest_budget_picks`), with every
+    budget's verdict on its curve (:func:`curve_verdict`): the longest, because a curve flat over a short run can
+    still move later. The score is the second-half mean (:func:`torchrl_tels.record.second_half_mean`), so that
+    budgets with different numbers of evaluations are read alike. Then the aggregate over the four shared sets
+    (:func:`longest_budget_matrices`), with the same intervals as :func:`aggregate_section` and a PNG of its own."""
+    picks = longest_budget_picks(found, longer, tasks, results_dir)
+    rows = []
+    for (task, method), pick in picks.items():
+        read_at = pick.label + ("" if pick.flat else f" ({pick.verdict})")
+        if pick.differ:
+            read_at += f"; **hyperparameters differ: {', '.join(pick.differ)}**"
+        rows.append(f"| {task} | {LABELS[method]} | " + " · ".join(f"{t[1]}: {t[3][0]}" for t in pick.tried)
+                    + f" | {read_at} | {_mean_cell([second_half_mean(r['evaluations']) for r in pick.runs])} |")
     if not rows:
         return []
     lines = ["", "## Each method at its longest budget", "",
@@ -683,22 +726,7 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
              "mean ± std over seeds.", "",
              "| task | method | budgets run: verdict | read at | second-half score |", "|---|---|---|---|---|",
              *rows]
-    matrices = {}
-    for method in TABLE_COLUMNS:
-        if not all((task, method) in picks for task in AGGREGATE_TASKS):
-            continue
-        by_task = [{r["seed"]: second_half_mean(r["evaluations"]) for r in picks[task, method][1]}
-                   for task in AGGREGATE_TASKS]
-        seeds = sorted(set.intersection(*(set(d) for d in by_task)))
-        if not seeds:
-            continue
-        budgets = sorted({picks[task, method][0] for task in AGGREGATE_TASKS})
-        verdicts = collections.Counter(picks[task, method][2] for task in AGGREGATE_TASKS)
-        label = (f"{LABELS[method]} at " + " / ".join(_steps_label(b) for b in budgets) + " steps"
-                 + "".join(f", {verdict} on {n} of {len(AGGREGATE_TASKS)}"
-                           for verdict, n in sorted(verdicts.items()) if verdict != "flat")
-                 + (", **hyperparameters differ**" if any(picks[t, method][3] for t in AGGREGATE_TASKS) else ""))
-        matrices[label] = np.array([[d[s] for d in by_task] for s in seeds])
+    matrices = longest_budget_matrices(picks)
     if not matrices:
         return lines
     estimates = _interval_estimates(matrices)

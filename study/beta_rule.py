@@ -82,25 +82,38 @@ def record(task: str, seed: int, beta: float, threads: int, force: bool = False)
     print(f"{task} seed {seed} beta {beta:g}: " + ", ".join(f"{k} {v:.4f}" for k, v in terms.items()))
 
 
-def report() -> str:
-    """The table of every recorded (task, seed, beta), then the beta each reading picks per task and seed."""
+def recorded() -> dict[tuple[str, int], dict[float, dict]]:
+    """``{(task, seed): {beta: record}}`` of every recorded stage 1."""
     rows: dict[tuple[str, int], dict[float, dict]] = {}
     for path in sorted(OUT.glob("*/seed*_beta*.json")):
         result = json.loads(path.read_text())
         rows.setdefault((result["task"], result["seed"]), {})[result["beta"]] = result
+    return rows
+
+
+def picks(rows: dict[tuple[str, int], dict[float, dict]] | None = None) -> dict[tuple[str, int], tuple[float, float]]:
+    """``{(task, seed): (beta of the lowest Eq. (7) as written, beta of the lowest unweighted sum)}``."""
+    rows = recorded() if rows is None else rows
+    return {key: (min(by_beta, key=lambda b: by_beta[b]["weighted_eq7"]),
+                  min(by_beta, key=lambda b: by_beta[b]["unweighted_sum"])) for key, by_beta in sorted(rows.items())}
+
+
+def report() -> str:
+    """The table of every recorded (task, seed, beta), then the beta each reading picks per task and seed."""
+    rows = recorded()
     lines = ["| task | seed | beta | ell_rec | ell_dyn | ell_ode | ell_Tsym | Eq. (7) weighted | unweighted sum |",
              "|---|---|---|---|---|---|---|---|---|"]
-    picks = []
+    chosen = picks(rows)
+    lines_picks = []
     for (task, seed), by_beta in sorted(rows.items()):
         for beta, r in sorted(by_beta.items()):
             t = r["terms"]
             lines.append(f"| {task} | {seed} | {beta:g} | " + " | ".join(f"{t[k]:.4f}" for k in TERMS)
                          + f" | {r['weighted_eq7']:.4f} | {r['unweighted_sum']:.4f} |")
-        weighted = min(by_beta, key=lambda b: by_beta[b]["weighted_eq7"])
-        unweighted = min(by_beta, key=lambda b: by_beta[b]["unweighted_sum"])
-        picks.append(f"- {task} seed {seed} (beta in {sorted(by_beta)}): weighted picks {weighted:g}, "
-                     f"unweighted picks {unweighted:g}")
-    return "\n".join([*lines, "", *picks])
+        weighted, unweighted = chosen[task, seed]
+        lines_picks.append(f"- {task} seed {seed} (beta in {sorted(by_beta)}): weighted picks {weighted:g}, "
+                           f"unweighted picks {unweighted:g}")
+    return "\n".join([*lines, "", *lines_picks])
 
 
 def main():

@@ -146,21 +146,25 @@ def table(records: dict[tuple[str, str, int], dict] | None = None) -> str:
     return "\n".join(lines + ["", *pooled_changes(records)])
 
 
-def pooled_changes(records: dict[tuple[str, str, int], dict]) -> list[str]:
-    """Per task and lookahead, over every seed's episodes: the mean paired change of the window's return from
-    the actor's, relative to the actor's mean, and how many episodes are up."""
+def pooled(records: dict[tuple[str, str, int], dict]) -> dict[tuple[str, int], tuple[float, float, int, int]]:
+    """``{(task, lookahead): (change, change over the actor's return, episodes up, episodes)}``: per task and
+    lookahead, over every seed's episodes, the mean paired change of the window's return from the actor's."""
     groups: dict[tuple[str, int], list[tuple[float, float]]] = {}
     for (_, task, _), r in sorted(records.items()):
         pairs = groups.setdefault((task, r["lookahead"]), [])
         pairs += zip(r["returns"]["actor"], r["returns"]["oracle"])
-    lines = []
-    for (task, lookahead), pairs in sorted(groups.items()):
+    out = {}
+    for key, pairs in sorted(groups.items()):
         change = statistics.mean(o - a for a, o in pairs)
-        up = sum(o > a for a, o in pairs)
-        lines.append(f"- {task}, lookahead {lookahead}: oracle over actor {change:+.0f} "
-                     f"({change / statistics.mean(a for a, _ in pairs):+.0%} of the actor's return), "
-                     f"up on {up} of {len(pairs)} episodes.")
-    return lines
+        out[key] = (change, change / statistics.mean(a for a, _ in pairs), sum(o > a for a, o in pairs), len(pairs))
+    return out
+
+
+def pooled_changes(records: dict[tuple[str, str, int], dict]) -> list[str]:
+    """:func:`pooled` as the lines under the table."""
+    return [f"- {task}, lookahead {lookahead}: oracle over actor {change:+.0f} "
+            f"({relative:+.0%} of the actor's return), up on {up} of {n} episodes."
+            for (task, lookahead), (change, relative, up, n) in pooled(records).items()]
 
 
 def _summary(record: dict) -> str:

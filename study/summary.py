@@ -139,6 +139,45 @@ def _means(arm: dict[str, dict[int, float]]) -> str:
     return " / ".join(f"{statistics.mean(arm[t].values()):.1f}" if t in arm else "—" for t in TASKS)
 
 
+def _bases(name: str, overrides: str, cpus: dict[str, set[str]], variants: dict,
+           default: dict) -> tuple[tuple[str, dict], dict[str, tuple[str, dict]]]:
+    """The arm a variant is paired against, ``(name, {task: {seed: score}})``, and the tasks where another arm
+    replaces it (``{task: (name, scores)}``): the arm it was built on, or the same settings on the same kind of
+    CPU (module docstring)."""
+    reencode = variants.get(REENCODE_ARM, ("", {}, {}))[1]
+    beta_arm = variants.get(BETA_ARM, ("", {}, {}))[1]
+    avx512_arm = variants.get(AVX512_PRESET_ARM, ("", {}, {}))[1]
+    on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
+    on_beta = name != BETA_ARM and on_reencode and "tsidm.beta=0.01" in overrides
+    base = ((BETA_ARM, beta_arm) if on_beta else ("reencode", reencode) if on_reencode else ("paper", default))
+    # Same-seed pairs are exact only on one kind of CPU: a task whose runs all recorded an
+    # Intel Xeon CPU is paired against the preset rerun on that machine.
+    per_task = {t: (AVX512_PRESET_ARM, avx512_arm) for t, seen in cpus.items()
+                if name != AVX512_PRESET_ARM and on_reencode and avx512_arm
+                and all(XEON in cpu for cpu in seen)}
+    if on_beta and name not in ALPHA1_ARMS and any(o in ALPHA1 for o in overrides.split()):
+        per_task = _alpha1_bases(variants, cpus)
+    return base, per_task
+
+
+def paired_changes() -> dict[str, dict[str, tuple[str, dict[int, float]]]]:
+    """``{variant: {task: (the arm it is paired against, {seed: change of the final score})}}``, the numbers
+    behind :func:`render`'s arrows, for the variants at the shared budget (the grid's Table 3 ablations and BC
+    are paired against the paper defaults)."""
+    default, variants = _grid_arm("tels"), _variant_arms()
+    arms = {name: (overrides, found, cpus) for name, (overrides, found, cpus) in variants.items()}
+    arms.update({method: ("", _grid_arm(method), {}) for method in (*ABLATIONS, "bc")})
+    changes = {}
+    for name, (overrides, found, cpus) in arms.items():
+        base, per_task = _bases(name, overrides, cpus, variants, default)
+        for task, scores in found.items():
+            against, base_scores = per_task.get(task, base)
+            paired = {s: scores[s] - base_scores[task][s] for s in scores if s in base_scores.get(task, {})}
+            if paired:
+                changes.setdefault(name, {})[task] = (against, paired)
+    return changes
+
+
 def render() -> str:
     default, bc, variants = _grid_arm("tels"), _grid_arm("bc"), _variant_arms()
     reencode = variants.get(REENCODE_ARM, ("", {}, {}))[1]
@@ -162,16 +201,7 @@ def render() -> str:
 
     row("paper defaults (grid TELS)", "(none)", default, base=None)
     for name, (overrides, found, cpus) in variants.items():
-        on_reencode = name != REENCODE_ARM and "guide.reencode_proposal=true" in overrides
-        on_beta = name != BETA_ARM and on_reencode and "tsidm.beta=0.01" in overrides
-        base = ((BETA_ARM, beta_arm) if on_beta else ("reencode", reencode) if on_reencode else ("paper", default))
-        # Same-seed pairs are exact only on one kind of CPU: a task whose runs all recorded an
-        # Intel Xeon CPU is paired against the preset rerun on that machine.
-        per_task = {t: (AVX512_PRESET_ARM, avx512_arm) for t, seen in cpus.items()
-                    if name != AVX512_PRESET_ARM and on_reencode and avx512_arm
-                    and all(XEON in cpu for cpu in seen)}
-        if on_beta and name not in ALPHA1_ARMS and any(o in ALPHA1 for o in overrides.split()):
-            per_task = _alpha1_bases(variants, cpus)
+        base, per_task = _bases(name, overrides, cpus, variants, default)
         row(name, f"`{overrides}`", found, base, per_task)
     for method in ABLATIONS:
         row(f"Table 3 ablation {method}", f"`tsidm.ablation={method.removeprefix('tels_')}`", _grid_arm(method))

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.aggregate import iqm, mean, performance_profile, stratified_bootstrap_ci
+from benchmarks.aggregate import iqm, mean, performance_profile, stratified_bootstrap_ci, t_interval, t_quantile
 
 
 def test_iqm_cuts_a_quarter_from_each_end():
@@ -46,3 +46,25 @@ def test_bad_scores_are_refused():
         iqm([1.0, 2.0])
     with pytest.raises(ValueError, match="NaN or inf"):
         mean([[1.0, float("nan")]])
+
+
+@pytest.mark.parametrize("df, quantile", [(1, 12.7062), (2, 4.3027), (3, 3.1824), (4, 2.7764), (9, 2.2622),
+                                          (30, 2.0423)])
+def test_t_quantile_matches_the_printed_tables(df, quantile):
+    assert t_quantile(0.975, df) == pytest.approx(quantile, abs=1e-4)
+
+
+def test_t_quantile_approaches_the_normal_and_refuses_what_it_cannot_compute():
+    assert t_quantile(0.975, 400) == pytest.approx(1.9659, abs=1e-4)
+    assert t_quantile(0.95, 1) == pytest.approx(6.3138, abs=1e-4)
+    for probability, df in ((0.5, 3), (1.0, 3), (0.975, 0), (0.975, 2.5)):
+        with pytest.raises(ValueError):
+            t_quantile(probability, df)
+
+
+def test_t_interval_is_the_mean_plus_minus_t_times_the_standard_error():
+    centre, low, high = t_interval([40.0, 44.0, 48.0])  # mean 44, sample std 4, n 3
+    half = 4.3027 * 4.0 / np.sqrt(3)
+    assert centre == 44.0 and low == pytest.approx(44.0 - half, abs=1e-3) and high == pytest.approx(44.0 + half, abs=1e-3)
+    single = t_interval([7.0])
+    assert single[0] == 7.0 and np.isnan(single[1]) and np.isnan(single[2])
