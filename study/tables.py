@@ -21,7 +21,7 @@ import statistics
 import sys
 
 from benchmarks.harness import recorded_cpu, repo_relative
-from study import (beta_rule, budget, eval_reading, heldout_selection, latent_scale,
+from study import (beta_rule, budget, eval_reading, heldout_selection, latent_scale, precision,
                    local_q, model_lookahead, model_selection, oracle_choice, realization,
                    summary, value_delivery)
 
@@ -139,6 +139,13 @@ def render() -> str:
         "`python -m study.summary`",
         "",
         summary.render().rstrip("\n"),
+        "",
+        "## bf16 against fp32 at the shared budget",
+        "",
+        "`python -m study.precision`: the preset's final scores in bf16 on a CPU that multiplies it natively,",
+        "paired with the same seeds in fp32; beside them, what a change of CPU alone does to the same fp32 runs.",
+        "",
+        precision.report(),
         "",
         "## The same runs read four ways",
         "",
