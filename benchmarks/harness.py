@@ -81,7 +81,9 @@ def run_recipe(overrides: Sequence[str], threads: int | None = None, *, quiet: b
     are pinned to it. ``quiet`` hides the recipe's output unless it fails. A failure raises
     :class:`RuntimeError` naming the command.
     """
-    cmd = [sys.executable, str(RECIPE), *overrides]
+    # The recorded results ran in fp32; the recipe's default (precision=auto) would take bf16 on some CPUs.
+    pinned = [] if any(o.startswith("precision=") for o in overrides) else ["precision=fp32"]
+    cmd = [sys.executable, str(RECIPE), *overrides, *pinned]
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)

@@ -452,10 +452,10 @@ def check_yourself(d: Data) -> list[str]:
     return [
         "## Check one number yourself", "",
         f"The default on {CHECK_TASK}, seed {CHECK_SEED}, at the study budget, one thread, as the study ran it "
-        "(one evaluation episode at a time):", "",
+        "(fp32, one evaluation episode at a time):", "",
         "```bash",
         f"OMP_NUM_THREADS=1 .venv/bin/python recipes/tels_offline.py dataset.name={CHECK_TASK} seed={CHECK_SEED} \\",
-        "    threads=1 eval.batched=false logger.wandb_mode=disabled run_dir=runs/check",
+        "    threads=1 precision=fp32 eval.batched=false logger.wandb_mode=disabled run_dir=runs/check",
         ".venv/bin/python -c \"import json; print(round(json.load(open('runs/check/results.json'))"
         "['final_normalized_score_mean'], 1))\"",
         "```", "",
