@@ -87,13 +87,7 @@ def test_study_readme_indexes_every_script_and_its_links_resolve():
     scripts = {module.split(".", 1)[1] for module in SCRIPTS if module.startswith("study.")}
     assert set(row.findall(current)) == scripts
     assert not {name for name in row.findall(retired) if (REPO / "study" / f"{name}.py").exists()}
-    for target in re.findall(r"\]\(([^)\s]+)\)", current + retired):
-        path, _, anchor = target.partition("#")
-        resolved = (readme.parent / path) if path else readme
-        assert resolved.exists(), f"study/README.md links to a missing {target}"
-        if anchor:
-            headings = re.findall(r"^#+ (.+)$", resolved.read_text(), re.MULTILINE)
-            assert anchor in {_anchor(h) for h in headings}, f"study/README.md links to a missing heading {target}"
+    _links_resolve(readme)
 
 
 def _links_resolve(document: Path) -> None:
