@@ -60,7 +60,7 @@ def tsidm_step(cfg, data, seeds: list[int]):
     loss = losses[0] if len(seeds) == 1 else StackedLoss(losses)
     params = loss.parameters() if len(seeds) == 1 else loss.trainable()
     optim = capturable_adam(params, lr=cfg.tsidm.lr, capturable=compile_options(cfg)["cudagraphs"])
-    train_step = make_compiled_step(loss, optim, cfg, device)
+    train_step = make_compiled_step(loss, optim, cfg)
     watch = FiniteWatch("stage 1")
     state = {"step": 0}
 

@@ -47,7 +47,7 @@ def stage1(cfg, data, device):
     torch.manual_seed(0)
     loss = make_tsidm_loss(cfg, make_tsidm(cfg, data).to(device), 1.0)
     optim = capturable_adam(loss.parameters(), lr=cfg.tsidm.lr, capturable=compile_options(cfg)["cudagraphs"])
-    return loss, make_compiled_step(loss, optim, cfg, torch.device(device))
+    return loss, make_compiled_step(loss, optim, cfg)
 
 
 def assert_same_parameters(eager, compiled, atol, rtol=1e-3):

@@ -44,8 +44,8 @@ def compile_update(
     """``update`` wrapped by ``torch.compile`` (``compile``) and then :class:`~tensordict.nn.CudaGraphModule`
     (``cudagraphs``); ``update`` itself when both are off.
 
-    The wrapped step returns what ``update`` returns; with ``cudagraphs`` those are the graph's static
-    outputs, overwritten by the next call, so read (or clone) them before calling it again.
+    The wrapped step returns what ``update`` returns; with ``cudagraphs``, clones of the graph's outputs
+    (``CudaGraphModule`` copies them out of its static buffers at each replay).
     """
     if mode not in COMPILE_MODES:
         raise ValueError(f"compile mode must be one of {COMPILE_MODES}, got {mode!r}.")

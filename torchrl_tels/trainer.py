@@ -75,9 +75,14 @@ SELECTION_KEYS = {"unweighted": "final_sum", "weighted": "final_loss"}
 MONITOR_QUANTILE = 0.99
 
 
+def run_precision(cfg):
+    """The factory of the loss forward passes' autocast context for the run's device and resolved precision."""
+    return precision_context(resolve_device(cfg.device), resolve_precision(cfg.precision, cfg.device))
+
+
 def autocast(cfg):
     """bf16 matmuls on the run's device (CPU or CUDA) when ``precision`` is or resolves to bf16; fp32 otherwise."""
-    return precision_context(resolve_device(cfg.device), resolve_precision(cfg.precision, cfg.device))()
+    return run_precision(cfg)()
 
 
 def compile_options(cfg) -> dict:
@@ -88,11 +93,10 @@ def compile_options(cfg) -> dict:
             "mode": OmegaConf.select(cfg, "compile.mode", default=None)}
 
 
-def make_compiled_step(loss_module, optim: torch.optim.Optimizer, cfg, device: torch.device):
+def make_compiled_step(loss_module, optim: torch.optim.Optimizer, cfg):
     """:func:`make_train_step` with the run's precision and ``compile`` switches."""
     options = compile_options(cfg)
-    step = make_train_step(loss_module, optim, precision_context(device, resolve_precision(cfg.precision, cfg.device)),
-                           compile=options["compile"], mode=options["mode"])
+    step = make_train_step(loss_module, optim, run_precision(cfg), compile=options["compile"], mode=options["mode"])
     return compile_update(step, cudagraphs=options["cudagraphs"])
 
 
@@ -328,7 +332,7 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
         run.restore(loss=loss_module, optim=optim)
         start, history, tail = run.step, run.tsidm_history, run.modules["tail"]
 
-    train_step = make_compiled_step(loss_module, optim, cfg, device)
+    train_step = make_compiled_step(loss_module, optim, cfg)
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}", file=sys.stdout,
                          initial=start, total=total, mininterval=2.0)
     for step in progress:
@@ -388,7 +392,7 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
         run.restore(loss=stack, optim=optim, seed_rng=rng)
         start, histories, tail = run.step, run.modules["histories"], run.modules["tail"]
 
-    train_step = make_compiled_step(stack, optim, cfg, device)
+    train_step = make_compiled_step(stack, optim, cfg)
     progress = tqdm.tqdm(range(start, total), desc=f"stage 1: TS-IDM beta={beta:g}, {len(seeds)} seeds",
                          file=sys.stdout, initial=start, total=total, mininterval=2.0)
     for step in progress:
@@ -521,11 +525,8 @@ class Stage2:
     guide_watch: FiniteWatch = field(default_factory=lambda: FiniteWatch("stage 2 (guide)"))
 
     def __post_init__(self):
-        compiled = {"compile": self.compile.get("compile", False), "mode": self.compile.get("mode")}
-        self.train_step = compile_update(make_stage2_step(
-            make_train_step(self.value_loss, self.value_optim, self.amp, **compiled),
-            make_train_step(self.guide_loss, self.guide_optim, self.amp, **compiled),
-            self.target_updater.step), cudagraphs=self.compile.get("cudagraphs", False))
+        self.train_step = make_stage2_step(self.value_loss, self.value_optim, self.guide_loss, self.guide_optim,
+                                           self.target_updater.step, self.amp, self.compile)
 
     def update(self, batch: TensorDictBase, step: int):
         """Algorithm 1, line 7: V by Eq. (8); line 8: the guide against the updated V; then the target V.
@@ -552,9 +553,15 @@ def _adam_options(optim: torch.optim.Optimizer) -> dict:
     return {key: group[key] for key in ("lr", "betas", "eps", "weight_decay", "fused", "capturable")}
 
 
-def make_stage2_step(value_step: Callable, guide_step: Callable, update_target: Callable) -> Callable:
+def make_stage2_step(value_loss, value_optim: torch.optim.Optimizer, guide_loss, guide_optim: torch.optim.Optimizer,
+                     update_target: Callable, amp=contextlib.nullcontext, options: dict | None = None) -> Callable:
     """Stage 2's whole train step (Algorithm 1, lines 7-8): V by Eq. (8), then the guide against the
-    updated V (Eq. 9/10), then the target V; returns both losses."""
+    updated V (Eq. 9/10), then the target V; returns both losses. ``options`` are :func:`compile_options`:
+    each loss's forward compiled, the whole step recorded as a CUDA graph."""
+    options = options or {}
+    compiled = {"compile": options.get("compile", False), "mode": options.get("mode")}
+    value_step = make_train_step(value_loss, value_optim, amp, **compiled)
+    guide_step = make_train_step(guide_loss, guide_optim, amp, **compiled)
 
     def train_step(batch: TensorDictBase):
         value_losses = value_step(batch)
@@ -562,7 +569,7 @@ def make_stage2_step(value_step: Callable, guide_step: Callable, update_target: 
         update_target()
         return value_losses, guide_losses
 
-    return train_step
+    return compile_update(train_step, cudagraphs=options.get("cudagraphs", False))
 
 
 @dataclass
@@ -594,11 +601,8 @@ class StackedStage2:
         self.target_weight = 1 - first.target_updater.eps  # torchrl's SoftUpdate: target.lerp_(source, 1 - eps)
         self.value_watch = FiniteWatch("stage 2 (value)", entries=self.labels)
         self.guide_watch = FiniteWatch("stage 2 (guide)", entries=self.labels)
-        compiled = {"compile": first.compile.get("compile", False), "mode": first.compile.get("mode")}
-        self.train_step = compile_update(make_stage2_step(
-            make_train_step(self.value, self.value_optim, first.amp, **compiled),
-            make_train_step(self.guide, self.guide_optim, first.amp, **compiled),
-            self.update_target), cudagraphs=first.compile.get("cudagraphs", False))
+        self.train_step = make_stage2_step(self.value, self.value_optim, self.guide, self.guide_optim,
+                                           self.update_target, first.amp, first.compile)
 
     def sample(self) -> TensorDictBase:
         return sample_seeds([stage.buffer for stage in self.stages], self.rng)
@@ -674,7 +678,7 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
         latent_stats=latent_stats,
         monitor=monitor,
         device=device,
-        amp=precision_context(device, resolve_precision(cfg.precision, cfg.device)),
+        amp=run_precision(cfg),
         compile=compiled,
     )
 
