@@ -44,6 +44,24 @@ def repo_relative(path: str | os.PathLike) -> str:
         return str(path)
 
 
+def write_generated(path: Path, text: str, command: str, check: bool = False) -> int:
+    """Writes the generated document ``path`` (0), or with ``check`` compares it with ``text``: 0 when it is
+    current, else 1, with the diff on stdout and the command that regenerates it on stderr."""
+    if check:
+        current = path.read_text() if path.exists() else ""
+        if current == text:
+            return 0
+        import difflib
+
+        sys.stdout.writelines(difflib.unified_diff(current.splitlines(True), text.splitlines(True),
+                                                   path.name, f"{command} would write"))
+        print(f"\n{path.name} is out of date: run {command}", file=sys.stderr)
+        return 1
+    path.write_text(text)
+    print(f"wrote {repo_relative(path)}")
+    return 0
+
+
 def portable(value: Any) -> Any:
     """``value`` with every path inside the repository made relative to its root and the
     running interpreter written ``python``; dicts, lists and tuples are converted throughout,

@@ -14,13 +14,12 @@ the paper's values are ``benchmarks.run_grid.PAPER_TABLE1``. The prose is static
 from __future__ import annotations
 
 import argparse
-import difflib
 import json
 import statistics
 import sys
 
 from benchmarks import aggregate, data_size, representations, run_grid
-from benchmarks.harness import recorded_cpu, repo_relative
+from benchmarks.harness import recorded_cpu, write_generated
 from study import beta_rule, budget, latent_scale, model_selection, oracle_choice, summary, value_delivery
 from torchrl_tels.record import second_half_mean
 
@@ -492,18 +491,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="compare with REPORT.md instead of writing it")
     args = parser.parse_args(argv)
-    text = render()
-    if args.check:
-        current = OUT.read_text() if OUT.exists() else ""
-        if current == text:
-            return 0
-        sys.stdout.writelines(difflib.unified_diff(current.splitlines(True), text.splitlines(True),
-                                                   "REPORT.md", f"{COMMAND} would write"))
-        print(f"\nREPORT.md is out of date: run {COMMAND}", file=sys.stderr)
-        return 1
-    OUT.write_text(text)
-    print(f"wrote {repo_relative(OUT)}")
-    return 0
+    return write_generated(OUT, render(), COMMAND, args.check)
 
 
 if __name__ == "__main__":

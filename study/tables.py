@@ -15,12 +15,11 @@ it is generated and is not edited by hand.
 from __future__ import annotations
 
 import argparse
-import difflib
 import json
 import statistics
 import sys
 
-from benchmarks.harness import recorded_cpu, repo_relative
+from benchmarks.harness import recorded_cpu, write_generated
 from study import (beta_rule, budget, eval_reading, heldout_selection, latent_scale, precision,
                    local_q, model_lookahead, model_selection, oracle_choice, realization,
                    summary, value_delivery)
@@ -305,18 +304,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="compare with RESULTS.md instead of writing it")
     args = parser.parse_args()
-    text = render()
-    if args.check:
-        current = OUT.read_text() if OUT.exists() else ""
-        if current == text:
-            return 0
-        sys.stdout.writelines(difflib.unified_diff(current.splitlines(True), text.splitlines(True),
-                                                   "RESULTS.md", f"{COMMAND} would write"))
-        print(f"\nRESULTS.md is out of date: run {COMMAND}", file=sys.stderr)
-        return 1
-    OUT.write_text(text)
-    print(f"wrote {repo_relative(OUT)}")
-    return 0
+    return write_generated(OUT, render(), COMMAND, args.check)
 
 
 if __name__ == "__main__":
