@@ -1,7 +1,7 @@
 """A finished run as standalone ``torch.export`` programs: the Eq. (11) actor and the consistency monitor.
 
 The programs are traced from the library's own modules (:func:`~torchrl_tels.modules.load_tels_actor`,
-:class:`~torchrl_tels.envs.TSymConsistencyMonitor`), so they compute exactly what those do and load
+:class:`~torchrl_tels.envs.DeploymentMonitor`), so they compute exactly what those do and load
 with torch alone::
 
     policy = torch.export.load("runs/a/export/policy.pt2").module()
@@ -29,7 +29,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.data import load_dataset
-from torchrl_tels.envs import make_eval_env, TSymConsistencyMonitor
+from torchrl_tels.envs import make_eval_env, DeploymentMonitor
 from torchrl_tels.envs.monitor import SCORE_KEY
 from torchrl_tels.errors import CheckpointError
 from torchrl_tels.modules import load_tels_actor, TSIDM
@@ -61,7 +61,7 @@ class PolicyProgram(nn.Module):
 class MonitorProgram(nn.Module):
     """(observation, action, next observation) → (``ood_score``, ``ood``) of a calibrated monitor."""
 
-    def __init__(self, monitor: TSymConsistencyMonitor) -> None:
+    def __init__(self, monitor: DeploymentMonitor) -> None:
         super().__init__()
         if not monitor.calibrated:
             raise CheckpointError("the consistency monitor is not calibrated; calibrate it before exporting.")
@@ -95,7 +95,7 @@ def _read_results(run_dir: Path) -> dict:
     return payload
 
 
-def _check_same_tsidm(monitor: TSymConsistencyMonitor, tsidm: TSIDM, path: Path) -> None:
+def _check_same_tsidm(monitor: DeploymentMonitor, tsidm: TSIDM, path: Path) -> None:
     theirs, ours = monitor.tsidm.state_dict(), tsidm.state_dict()
     if theirs.keys() != ours.keys() or any(not torch.equal(theirs[k], ours[k]) for k in ours):
         raise CheckpointError(f"{path} was calibrated with another TS-IDM than the run's tsidm.pt; "
@@ -144,11 +144,11 @@ def export_run(
 
     monitor, monitor_source = None, None
     if calibrate is not None:
-        monitor = TSymConsistencyMonitor(tsidm)
+        monitor = DeploymentMonitor(tsidm)
         monitor.calibrate(load_dataset(calibrate), quantile=quantile)
         monitor_source = str(calibrate)
     elif (run_dir / "monitor.pt").is_file():
-        monitor = TSymConsistencyMonitor.load(run_dir / "monitor.pt", observation_dim=observation_dim,
+        monitor = DeploymentMonitor.load(run_dir / "monitor.pt", observation_dim=observation_dim,
                                               action_dim=action_dim)
         _check_same_tsidm(monitor, tsidm, run_dir / "monitor.pt")
         monitor_source = "monitor.pt"

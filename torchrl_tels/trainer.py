@@ -36,7 +36,7 @@ from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
 from torchrl_tels.envs import (get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform,
-                               TSymConsistencyMonitor)
+                               DeploymentMonitor)
 from torchrl_tels.envs.evaluation import eval_env_spaces
 from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
@@ -517,7 +517,7 @@ class Stage2:
     guide: Any
     actor_options: dict
     latent_stats: dict
-    monitor: TSymConsistencyMonitor
+    monitor: DeploymentMonitor
     device: torch.device = torch.device("cpu")
     amp: Callable = contextlib.nullcontext  # the loss forward passes' precision (precision_context)
     compile: dict = field(default_factory=dict)  # compile_update's switches (compile_options)
@@ -647,7 +647,7 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     latent_stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
     latent_stats["data_action_std"] = data["action"].std(0).mean().item()
     print(f"latent scale: RMS spread {latent_stats['latent_rms']:.4g}, RMS step {latent_stats['latent_step_rms']:.4g}")
-    monitor = TSymConsistencyMonitor(tsidm)
+    monitor = DeploymentMonitor(tsidm)
     monitor.calibrate(data, quantile=MONITOR_QUANTILE)
     torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
     value_net = make_latent_value(latent_dim, cfg.value.num_cells).to(device)
@@ -689,7 +689,7 @@ def score(task: Task, episode_return: float) -> float:
 
 
 def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
-             monitor: TSymConsistencyMonitor | None = None) -> dict:
+             monitor: DeploymentMonitor | None = None) -> dict:
     """``eval.episodes`` deterministic episodes (seeded by run seed and step) and their diagnostics.
 
     Besides the returns and scores, records the guide's proposed latent step, how far the states
@@ -729,7 +729,7 @@ def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:
     return {f"{prefix}eval/{k}": float(evaluation[k]) for k in keys if evaluation.get(k) is not None}
 
 
-def _monitor_record(monitor: TSymConsistencyMonitor, rollouts: list) -> dict:
+def _monitor_record(monitor: DeploymentMonitor, rollouts: list) -> dict:
     """The monitor's score along each episode and the fraction of flagged steps; a monitor error
     (a non-finite state) is recorded, not raised, so it never costs the finished training."""
     record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile)}

@@ -18,7 +18,9 @@ from torchrl_tels.data.subsets import (
     points_in_boxes,
     subsample_transitions,
     subset_dataset,
+    split_trajectories,
     subset_trajectories,
+    trajectory_ids,
 )
 
 __all__ = [
@@ -35,7 +37,9 @@ __all__ = [
     "minari_dataset_to_tensordict",
     "points_in_boxes",
     "shared_datasets_dir",
+    "split_trajectories",
     "subsample_transitions",
     "subset_dataset",
     "subset_trajectories",
+    "trajectory_ids",
 ]

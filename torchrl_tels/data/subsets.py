@@ -22,6 +22,8 @@ __all__ = [
     "PAPER_SUBSET_SIZES",
     "SUBSET_MODES",
     "subset_dataset",
+    "split_trajectories",
+    "trajectory_ids",
     "subset_trajectories",
     "subsample_transitions",
     "points_in_boxes",
@@ -113,6 +115,38 @@ def subset_trajectories(
         subset.set_at_(("next", "done"), True, cut_row)
         subset.set_at_(("next", "terminated"), False, cut_row)
     return subset
+
+
+def trajectory_ids(data: TensorDictBase) -> torch.Tensor:
+    """``0, 1, ...``: the index of each row's trajectory, a trajectory being a run of equal ``"episode"`` ids."""
+    if "episode" not in data.keys():
+        raise DatasetError("the data has no 'episode' entry, so its trajectories cannot be told apart.")
+    episode = data.get("episode").reshape(-1)
+    start = torch.ones(len(episode), dtype=torch.bool)
+    start[1:] = episode[1:] != episode[:-1]
+    return start.cumsum(0) - 1
+
+
+def split_trajectories(data: TensorDictBase, fraction: float, seed: int) -> tuple[TensorDictBase, TensorDictBase]:
+    """Splits ``data`` into (whole trajectories holding about ``fraction`` of the transitions, the rest).
+
+    Trajectories are drawn in a random order fixed by ``seed`` until ``fraction`` of the transitions
+    is reached; both parts keep the original row order. Transitions of one trajectory are strongly
+    dependent, so a part held out for calibration or testing must not share trajectories with the
+    part a model was fitted on. Both parts are refused empty.
+    """
+    if not 0.0 < float(fraction) < 1.0:
+        raise DatasetError(f"split_trajectories: fraction must lie in (0, 1), got {fraction}.")
+    run_id = trajectory_ids(data)
+    count = int(run_id[-1]) + 1 if len(run_id) else 0
+    if count < 2:
+        raise DatasetError(f"split_trajectories needs at least two trajectories, the data holds {count}.")
+    order = torch.randperm(count, generator=_generator(seed))
+    lengths = torch.bincount(run_id, minlength=count)[order]
+    taken = int(torch.searchsorted(lengths.cumsum(0), fraction * len(run_id))) + 1
+    kept = order[: min(taken, count - 1)]
+    mask = torch.isin(run_id, kept)
+    return data[mask], data[~mask]
 
 
 def subsample_transitions(data: TensorDictBase, size: int, seed: int) -> TensorDictBase:

@@ -19,14 +19,14 @@ from torchrl_tels.envs.evaluation import (
     PolicyOnDevice,
     rollout_episodes,
 )
-from torchrl_tels.envs.monitor import TSymConsistencyMonitor
+from torchrl_tels.envs.monitor import DeploymentMonitor
 from torchrl_tels.envs.transforms import TSIDMEncoderTransform
 
 __all__ = [
     "D4RL_REFERENCE_SCORES",
     "PolicyOnDevice",
     "TSIDMEncoderTransform",
-    "TSymConsistencyMonitor",
+    "DeploymentMonitor",
     "Task",
     "evaluate_policy",
     "get_task",

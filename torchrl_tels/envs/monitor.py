@@ -1,9 +1,10 @@
-"""A T-symmetry consistency monitor: how far each transition is from what a trained TS-IDM accepts."""
+"""A deployment monitor: how far each transition, and each stretch of an episode, is from the data."""
 from __future__ import annotations
 
 import copy
 import math
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -12,255 +13,458 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
-from torchrl_tels.checkpoint import atomic_save, load_checkpoint
+from torchrl_tels.checkpoint import atomic_save, CheckpointError, load_checkpoint
+from torchrl_tels.data.subsets import trajectory_ids
 from torchrl_tels.errors import MonitorError
+from torchrl_tels.modules.detectors import DynamicsEnsemble, NearestStateDistance
 from torchrl_tels.modules.tsidm import squared_norm, TSIDM
 
-__all__ = ["SCORE_TERMS", "TSymConsistencyMonitor"]
+__all__ = ["DEFAULT_COMBINATION", "DeploymentMonitor", "SCORE_TERMS", "conformal_threshold", "running_mean"]
 
 TSYM_KEY = "tsym_inconsistency"
 DYNAMICS_KEY = "dynamics_residual"
 ACTION_KEY = "action_residual"
+MODEL_KEY = "model_residual"
+DISAGREEMENT_KEY = "model_disagreement"
+NEAREST_KEY = "nearest_state"
+#: The scores read off the TS-IDM.
+TSIDM_TERMS = (TSYM_KEY, DYNAMICS_KEY, ACTION_KEY)
+#: Every per-transition score the monitor can write; each needs its detector.
+SCORE_TERMS = (*TSIDM_TERMS, MODEL_KEY, DISAGREEMENT_KEY, NEAREST_KEY)
+#: The terms the default ``ood_score`` averages: the two that lead the benchmark (BENCHMARKS.md, "Deployment monitor").
+DEFAULT_COMBINATION = (MODEL_KEY, NEAREST_KEY)
+COMBINED = "combined"
 SCORE_KEY = "ood_score"
 FLAG_KEY = "ood"
-#: The per-transition scores the monitor writes; any of them can be its ``ood_score``.
-SCORE_TERMS = (TSYM_KEY, DYNAMICS_KEY, ACTION_KEY)
+WINDOW_KEY = "ood_window"
+ALARM_KEY = "ood_alarm"
+RECENT_KEY = "ood_recent"
+COUNT_KEY = "ood_count"
+_TINY = 1e-12  # keeps log() finite at a score of exactly 0
 
 
-class TSymConsistencyMonitor(Transform):
-    r"""Scores each transition :math:`(s, a, s')` by its disagreement with a frozen TS-IDM.
+def conformal_threshold(scores: torch.Tensor, quantile: float) -> float:
+    r"""The split-conformal threshold: the :math:`\lceil (n+1) q \rceil`-th smallest of ``n`` calibration scores.
 
-    With :math:`z_s = \phi_s(s)`, :math:`z_{s'} = \phi_s(s')` (states normalized
-    as the TS-IDM was trained) and the latent action the TS-IDM infers from the
-    two states, :math:`z_a = h_{inv}(z_s, z_{s'})`, the monitor writes
+    A new score exchangeable with the calibration scores exceeds it with probability at most
+    :math:`1 - q` (and at least :math:`1 - q - 1/(n+1)` without ties). When :math:`(n+1)q > n` no
+    calibration score is high enough, and the largest is returned.
+    """
+    scores = scores.reshape(-1).double().sort().values
+    rank = min(math.ceil((len(scores) + 1) * float(quantile)), len(scores))
+    return float(scores[rank - 1])
 
-    * ``tsym_inconsistency``, Eq. (6) at :math:`(z_s, z_a)`:
-      :math:`\|h_{fwd}(z_s, z_a) + h_{rvs}(z_s + h_{fwd}(z_s, z_a), z_a)\|_2^2`
-      (:meth:`TSIDM.tsym_consistency <torchrl_tels.modules.TSIDM.tsym_consistency>`).
-      The paper (§3.1, below Eq. 6) proposes this very value as an evaluation
-      metric: a large one marks a latent transition that does not follow the
-      learned dynamics, "a problematic or non-generalizable sample";
-    * ``dynamics_residual``: :math:`\|z_s + h_{fwd}(z_s, z_a) - z_{s'}\|_2^2`, how far
-      the latent ODE step misses the observed next latent (the relation
-      :math:`z_{s'} = z_s + \dot z_s` stated below Eq. 6);
-    * ``action_residual``: :math:`\|\psi_a(z_a) - a\|_2^2`, the action term of
-      Eq. (3): the action the TS-IDM reads off :math:`(s, s')` against the one
-      taken. It is the only score that uses :math:`a`; the other two see the
-      action only through the state change it caused;
-    * ``ood_score``: one of the three, chosen by ``score`` (default: the
-      T-symmetry inconsistency, the paper's metric);
-    * ``ood``: ``ood_score > threshold``, a boolean.
 
-    Norms are sums of squares over the vector (``dim_reduction="sum"``, as the
-    paper writes them) or means (``"mean"``), as in the TS-IDM's training.
+def running_mean(scores: torch.Tensor, window: int, trajectory: torch.Tensor | None = None) -> torch.Tensor:
+    """The mean of each step's score and the ``window - 1`` steps before it in the same trajectory.
 
-    **Calibration.** :meth:`calibrate` sets ``threshold`` to the ``quantile`` of
-    ``ood_score`` over the training transitions, so a fraction
-    :math:`1 - q` of the training data is flagged. Both are buffers, saved in
-    :meth:`state_dict` and by :meth:`save`. Asking an uncalibrated monitor for
-    the flag raises a :class:`~torchrl_tels.errors.MonitorError`; build it with
-    ``flag=False`` to record scores only.
+    ``scores`` has time as its last dimension; ``trajectory`` (the same shape, optional) numbers the
+    trajectory of each step, so a window never reaches into the previous trajectory. Early in a
+    trajectory the mean is over the steps so far, as the monitor computes it online.
+    """
+    scores = scores.double()
+    if trajectory is None:
+        trajectory = torch.zeros(scores.shape, dtype=torch.long, device=scores.device)
+    time = torch.arange(scores.shape[-1], device=scores.device).expand_as(scores)
+    start = torch.ones_like(trajectory, dtype=torch.bool)
+    start[..., 1:] = trajectory[..., 1:] != trajectory[..., :-1]
+    first = torch.cummax(torch.where(start, time, torch.zeros_like(time)), -1).values  # first step of the trajectory
+    lower = torch.maximum(first, time - window + 1)
+    cumulative = torch.cat([torch.zeros_like(scores[..., :1]), scores.cumsum(-1)], -1)
+    total = cumulative[..., 1:] - cumulative.gather(-1, lower)
+    return total / (time - lower + 1)
 
-    **Where it works.** Like
-    :class:`~torchrl_tels.envs.TSIDMEncoderTransform`:
 
-    * in a :class:`~torchrl.envs.TransformedEnv`: a transition is complete only
-      after the step, so :meth:`_step` scores (root observation, root action,
-      next observation) and writes the entries under ``"next"``, beside the
-      reward; a reset writes zeros and ``False``. The entries are in the
-      observation spec with shape ``(*batch, 1)``, and the env's observation and
-      action sizes are checked against the TS-IDM's when the specs are built.
-      The monitor reads the raw observation: put it before any transform that
-      removes it;
-    * on replay-buffer samples (``rb.append_transform(monitor)``) and on
-      any tensordict of transitions (``monitor(td)``): root ``observation`` and
-      ``action`` with ``("next", "observation")``; the scores go under ``"next"``;
+class DeploymentMonitor(Transform):
+    r"""Scores each transition :math:`(s, a, s')` by how far it is from the data, and raises alarms over a window.
+
+    **Detectors.** Each given component adds its scores (per transition, larger = farther):
+
+    * a trained :class:`~torchrl_tels.modules.TSIDM` (``tsidm``), with :math:`z_s = \phi_s(s)`,
+      :math:`z_{s'} = \phi_s(s')` and :math:`z_a = h_{inv}(z_s, z_{s'})`:
+
+      - ``tsym_inconsistency``, Eq. (6) at :math:`(z_s, z_a)`, the value the paper (§3.1, below Eq. 6)
+        proposes for spotting "a problematic or non-generalizable sample";
+      - ``dynamics_residual``: :math:`\|z_s + h_{fwd}(z_s, z_a) - z_{s'}\|_2^2`;
+      - ``action_residual``: :math:`\|\psi_a(z_a) - a\|_2^2`, the action term of Eq. (3);
+
+    * a :class:`~torchrl_tels.modules.DynamicsEnsemble` (``dynamics``): ``model_residual``, the
+      miss of the one-step models' mean prediction, and ``model_disagreement``, their spread;
+    * a :class:`~torchrl_tels.modules.NearestStateDistance` (``states``): ``nearest_state``, the
+      distance from :math:`s'` to the nearest data state.
+
+    **The monitor's score.** Each term :math:`r_j` is put on a common scale by its calibration
+    data, :math:`u_j = (\log r_j - m_j) / \sigma_j`, and ``ood_score`` is :math:`u` of the term named
+    by ``score`` or, with ``score="combined"`` (the default), the mean of :math:`u_j` over
+    ``combine``. ``ood`` is ``ood_score > threshold``.
+
+    **The window.** In an environment the monitor keeps the last ``window`` scores of the episode
+    (``ood_recent``, ``ood_count``, carried from step to step like any observation) and writes
+    their mean, ``ood_window``, and ``ood_alarm = ood_window > window_threshold``. A changed plant
+    or a drift moves each transition little; the mean over many moves further from its calibration
+    spread. :func:`running_mean` computes the same statistic offline.
+
+    **Calibration.** :meth:`calibrate` takes in-distribution trajectories *that the detectors were
+    not fitted to* (a held-out split: :func:`~torchrl_tels.data.split_trajectories`, or
+    :meth:`fit`, which does both), and sets :math:`m_j, \sigma_j`, then ``threshold`` and
+    ``window_threshold`` by split-conformal calibration (:func:`conformal_threshold`) at
+    ``quantile`` and ``window_quantile``. A detector scores the data it was fitted to lower than new
+    data, so thresholds set on its training data alarm far more often than their nominal rate.
+
+    **Where it works.** As a :class:`~torchrl.envs.Transform`:
+
+    * in a :class:`~torchrl.envs.TransformedEnv`: :meth:`_step` scores (root observation, root
+      action, next observation) and writes every entry under ``"next"``; a reset writes zeros and
+      ``False``. Observation and action sizes are checked when the specs are built. The monitor
+      reads the raw observation: put it before any transform that removes it;
+    * on replay-buffer samples (``rb.append_transform(monitor)``) and any tensordict of transitions
+      (``monitor(td)``): the per-transition entries (not the window) go under ``"next"``;
     * at write time in a buffer (``rb.append_transform(monitor, invert=True)``).
 
-    Bad input is refused with a :class:`~torchrl_tels.errors.MonitorError`
-    naming it: an observation or action whose size differs from the TS-IDM's,
-    or a NaN/inf in any of them.
-
-    Args:
-        tsidm (TSIDM, str or path-like): a trained TS-IDM or the path of a file
-            written by :meth:`TSIDM.save <torchrl_tels.modules.TSIDM.save>`. A
-            module is copied before being frozen. To load a saved monitor, use
-            :meth:`load`.
+    A size that differs from the detectors', a NaN or inf in the stream, or a tensordict without
+    the transition's keys is refused with one :class:`~torchrl_tels.errors.MonitorError` naming it.
 
     Keyword Args:
-        score (str): which of :data:`SCORE_TERMS` is the ``ood_score``.
-            Defaults to ``"tsym_inconsistency"``.
-        flag (bool): write the ``ood`` flag (needs a calibrated monitor).
-            Defaults to ``True``.
-        dim_reduction (str): ``"sum"`` or ``"mean"`` over vector entries.
+        tsidm (TSIDM, str or path-like, optional): a trained TS-IDM (copied, then frozen) or its file.
+        dynamics (DynamicsEnsemble, optional): a fitted one-step ensemble (copied, frozen).
+        states (NearestStateDistance, optional): the data's states (copied).
+        score (str): ``"combined"`` or one of the available :data:`SCORE_TERMS`. Defaults to ``"combined"``.
+        combine (sequence of str, optional): the terms the combined score averages. Defaults to the
+            available terms of :data:`DEFAULT_COMBINATION`, or every available term if none is.
+        window (int): steps the windowed mean covers. Defaults to 100.
+        flag (bool): write ``ood`` and ``ood_alarm`` (they need a calibrated monitor). Defaults to True.
+        dim_reduction (str): ``"sum"`` or ``"mean"`` over vector entries, for the TS-IDM terms.
         observation_key, action_key (NestedKey): where the transition is read.
-        observation_dim, action_dim (int, optional): sizes the TS-IDM must
-            have; a mismatch is refused.
-        threshold, quantile (float, optional): a calibration made before.
+        observation_dim, action_dim (int, optional): sizes the detectors must have.
 
     Examples:
         >>> from torchrl.envs import GymEnv, TransformedEnv
-        >>> from torchrl_tels.data import load_dataset
-        >>> from torchrl_tels.envs import TSymConsistencyMonitor
-        >>> monitor = TSymConsistencyMonitor("runs/a/tsidm.pt")
-        >>> monitor.calibrate(load_dataset("hopper-medium-v2-10k"), quantile=0.99)
-        >>> monitor.save("runs/a/monitor.pt")
-        >>> env = TransformedEnv(GymEnv("Hopper-v4"), TSymConsistencyMonitor.load("runs/a/monitor.pt"))
-        >>> rollout = env.rollout(100)
-        >>> rollout["next", "ood_score"].shape, rollout["next", "ood"].float().mean()
+        >>> from torchrl_tels.data import load_dataset, split_trajectories
+        >>> from torchrl_tels.envs import DeploymentMonitor
+        >>> train, held_out = split_trajectories(load_dataset("hopper-medium-v2-10k"), 0.8, seed=0)
+        >>> monitor = DeploymentMonitor.fit(train, held_out)
+        >>> monitor.save("monitor.pt")
+        >>> env = TransformedEnv(GymEnv("Hopper-v4"), DeploymentMonitor.load("monitor.pt"))
+        >>> rollout = env.rollout(300)
+        >>> rollout["next", "ood_window"].shape, rollout["next", "ood_alarm"].any()
     """
 
     invertible = False
-    CHECKPOINT_FORMAT = "torchrl_tels.monitor/v1"
+    CHECKPOINT_FORMAT = "torchrl_tels.monitor/v2"
 
     def __init__(
         self,
-        tsidm: TSIDM | str | os.PathLike,
         *,
-        score: str = TSYM_KEY,
+        tsidm: TSIDM | str | os.PathLike | None = None,
+        dynamics: DynamicsEnsemble | None = None,
+        states: NearestStateDistance | None = None,
+        score: str = COMBINED,
+        combine: Sequence[str] | None = None,
+        window: int = 100,
         flag: bool = True,
         dim_reduction: str = "sum",
         observation_key: NestedKey = "observation",
         action_key: NestedKey = "action",
         observation_dim: int | None = None,
         action_dim: int | None = None,
-        threshold: float | None = None,
-        quantile: float | None = None,
     ) -> None:
+        name = type(self).__name__
         if isinstance(tsidm, (str, os.PathLike)):
             tsidm = TSIDM.load(tsidm, observation_dim=observation_dim, action_dim=action_dim)
-        elif isinstance(tsidm, TSIDM):
-            for name, expected in (("observation_dim", observation_dim), ("action_dim", action_dim)):
-                if expected is not None and getattr(tsidm, name) != int(expected):
-                    raise MonitorError(f"{type(self).__name__}: the TS-IDM has {name}={getattr(tsidm, name)}, "
-                                       f"but {name}={expected} was requested: it was trained for another task.")
-            tsidm = copy.deepcopy(tsidm)
-        else:
-            raise TypeError(f"{type(self).__name__} expects a TSIDM or the path of a saved TS-IDM, "
-                            f"got {type(tsidm).__name__}.")
-        if score not in SCORE_TERMS:
-            raise MonitorError(f"{type(self).__name__}: score must be one of {SCORE_TERMS}, got {score!r}.")
+        for label, module, kind in (("tsidm", tsidm, TSIDM), ("dynamics", dynamics, DynamicsEnsemble),
+                                    ("states", states, NearestStateDistance)):
+            if module is not None and not isinstance(module, kind):
+                raise TypeError(f"{name}: {label} must be a {kind.__name__}, got {type(module).__name__}.")
+        if tsidm is None and dynamics is None and states is None:
+            raise MonitorError(f"{name} needs at least one detector: a tsidm, a dynamics ensemble or the states.")
+        sizes = {"observation_dim": {}, "action_dim": {}}
+        for label, module in (("tsidm", tsidm), ("dynamics", dynamics)):
+            if module is not None:
+                sizes["observation_dim"][label] = module.observation_dim
+                sizes["action_dim"][label] = module.action_dim
+        if states is not None:
+            sizes["observation_dim"]["states"] = states.bank.shape[-1]
+        for size, found in sizes.items():
+            requested = {"observation_dim": observation_dim, "action_dim": action_dim}[size]
+            if requested is not None:
+                found = {**found, "requested": int(requested)}
+            if len(set(found.values())) > 1:
+                raise MonitorError(f"{name}: the detectors disagree on {size} ({found}): they were made for "
+                                   "different tasks.")
+        self._observation_dim = next(iter(sizes["observation_dim"].values()))
+        self._action_dim = next(iter(sizes["action_dim"].values()), None if action_dim is None else int(action_dim))
+
+        terms = (TSIDM_TERMS if tsidm is not None else ()) + ((MODEL_KEY, DISAGREEMENT_KEY) if dynamics else ()) \
+            + ((NEAREST_KEY,) if states is not None else ())
+        if combine is None:
+            combine = tuple(t for t in DEFAULT_COMBINATION if t in terms) or terms
+        combine = tuple(combine)
+        unknown = [t for t in combine if t not in terms] + ([score] if score not in (*terms, COMBINED) else [])
+        if unknown or not combine:
+            raise MonitorError(f"{name}: score must be 'combined' or one of the available terms {terms}, and "
+                               f"combine a non-empty list of them; got score={score!r}, combine={list(combine)}.")
+        if int(window) < 1:
+            raise MonitorError(f"{name}: window must be at least 1 step, got {window}.")
         squared_norm(torch.zeros(1), dim_reduction)  # refuses an unknown reduction now, not at the first step
         observation_key, action_key = unravel_key(observation_key), unravel_key(action_key)
-        out_keys = [*SCORE_TERMS, SCORE_KEY] + ([FLAG_KEY] if flag else [])
+        self.terms, self.score_key, self.combine = terms, score, combine
+        self.window, self.flag = int(window), bool(flag)
+        out_keys = [*terms, SCORE_KEY, WINDOW_KEY, RECENT_KEY, COUNT_KEY] + ([FLAG_KEY, ALARM_KEY] if flag else [])
         super().__init__(in_keys=[observation_key, action_key], out_keys=out_keys)
         self.observation_key, self.action_key = observation_key, action_key
-        tsidm.requires_grad_(False)
-        self.tsidm = tsidm.eval()
-        self.score_key = score
-        self.flag = bool(flag)
         self.dim_reduction = dim_reduction
-        self.register_buffer("threshold", torch.tensor(math.nan))
-        self.register_buffer("quantile", torch.tensor(math.nan, dtype=torch.float64))
-        if threshold is not None:
-            self._set_calibration(threshold, math.nan if quantile is None else quantile)
+        self.tsidm = self._frozen(tsidm)
+        self.dynamics = self._frozen(dynamics)
+        self.states = self._frozen(states)
+        self.register_buffer("term_loc", torch.zeros(len(terms)))
+        self.register_buffer("term_scale", torch.ones(len(terms)))
+        for buffer in ("threshold", "window_threshold"):
+            self.register_buffer(buffer, torch.tensor(math.nan))
+        for buffer in ("quantile", "window_quantile"):
+            self.register_buffer(buffer, torch.tensor(math.nan, dtype=torch.float64))
+        self.metadata: dict[str, Any] = {}
+
+    @staticmethod
+    def _frozen(module):
+        if module is None:
+            return None
+        module = copy.deepcopy(module)
+        module.requires_grad_(False)
+        return module.eval()
 
     # ------------------------------------------------------------------ props
     @property
     def observation_dim(self) -> int:
-        return self.tsidm.observation_dim
+        return self._observation_dim
 
     @property
-    def action_dim(self) -> int:
-        return self.tsidm.action_dim
+    def action_dim(self) -> int | None:
+        return self._action_dim
 
     @property
     def calibrated(self) -> bool:
-        return bool(torch.isfinite(self.threshold))
+        return bool(torch.isfinite(self.threshold)) and bool(torch.isfinite(self.window_threshold))
 
-    @property
-    def _dtype(self) -> torch.dtype:
-        return self.tsidm.obs_loc.dtype
-
-    def train(self, mode: bool = True) -> "TSymConsistencyMonitor":
-        # The TS-IDM is frozen: h_inv's dropout must stay off whatever the parent does.
+    def train(self, mode: bool = True) -> "DeploymentMonitor":
+        # The detectors are frozen: h_inv's dropout must stay off whatever the parent does.
         super().train(mode)
-        self.tsidm.eval()
+        for module in (self.tsidm, self.dynamics, self.states):
+            if module is not None:
+                module.eval()
         return self
 
     # ----------------------------------------------------------------- scores
-    def _check(self, name: str, value: torch.Tensor, size: int) -> None:
-        if value.shape[-1:] != (size,):
-            raise MonitorError(f"{type(self).__name__}: {name} has shape {tuple(value.shape)}, but the TS-IDM "
-                               f"was trained on {name}s of size {size} (last dimension): another task's data?")
+    def _check(self, label: str, value: torch.Tensor, size: int | None) -> None:
+        if size is not None and value.shape[-1:] != (size,):
+            raise MonitorError(f"{type(self).__name__}: {label} has shape {tuple(value.shape)}, but the monitor "
+                               f"was fitted to {label}s of size {size} (last dimension): another task's data?")
         if not torch.isfinite(value).all():
-            bad = int((~torch.isfinite(value)).reshape(-1, size).any(-1).sum())
-            raise MonitorError(f"{type(self).__name__}: {name} holds NaN or inf in {bad} transition(s); "
+            bad = int((~torch.isfinite(value)).reshape(-1, value.shape[-1]).any(-1).sum())
+            raise MonitorError(f"{type(self).__name__}: {label} holds NaN or inf in {bad} transition(s); "
                                "the scores of such a transition are meaningless.")
 
-    def scores(
-        self,
-        observation: torch.Tensor,
-        action: torch.Tensor,
-        next_observation: torch.Tensor,
-        *,
-        check: bool = True,
-    ) -> dict[str, torch.Tensor]:
-        """The per-transition scores (shape ``observation.shape[:-1]``): every :data:`SCORE_TERMS` and ``ood_score``.
+    def raw_scores(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
+                   *, check: bool = True) -> dict[str, torch.Tensor]:
+        """Every available term (see :data:`SCORE_TERMS`), shape ``observation.shape[:-1]``, in its own units.
 
-        ``check=False`` skips the size and finiteness checks (for tracing with :func:`torch.export.export`,
-        where a data-dependent check cannot be compiled).
+        ``check=False`` skips the size and finiteness checks (for :func:`torch.export.export`, which
+        cannot trace a data-dependent check).
         """
         if check:
             self._check("observation", observation, self.observation_dim)
             self._check("next observation", next_observation, self.observation_dim)
             self._check("action", action, self.action_dim)
-        tsidm, reduction = self.tsidm, self.dim_reduction
+        out = {}
         with torch.no_grad():
-            z = tsidm.encode_state(observation)
-            z_next = tsidm.encode_state(next_observation)
-            z_a = tsidm.infer_latent_action(z, z_next)
-            out = {
-                TSYM_KEY: tsidm.tsym_consistency(z, z_a, reduction),  # Eq. (6)
-                DYNAMICS_KEY: squared_norm(z + tsidm.latent_forward(z, z_a) - z_next, reduction),
-                ACTION_KEY: squared_norm(tsidm.decode_action(z_a) - action.to(self._dtype), reduction),  # Eq. (3)
-            }
-        out[SCORE_KEY] = out[self.score_key]
-        return out
+            if self.tsidm is not None:
+                tsidm, reduction = self.tsidm, self.dim_reduction
+                z = tsidm.encode_state(observation)
+                z_next = tsidm.encode_state(next_observation)
+                z_a = tsidm.infer_latent_action(z, z_next)
+                out[TSYM_KEY] = tsidm.tsym_consistency(z, z_a, reduction)  # Eq. (6)
+                out[DYNAMICS_KEY] = squared_norm(z + tsidm.latent_forward(z, z_a) - z_next, reduction)
+                out[ACTION_KEY] = squared_norm(tsidm.decode_action(z_a) - action.to(z.dtype), reduction)  # Eq. (3)
+            if self.dynamics is not None:
+                out[MODEL_KEY], out[DISAGREEMENT_KEY] = self.dynamics.scores(observation, action, next_observation)
+            if self.states is not None:
+                out[NEAREST_KEY] = self.states(next_observation)
+        return {term: out[term].float() for term in self.terms}
+
+    def standardize(self, raw: dict[str, torch.Tensor]) -> torch.Tensor:
+        """:math:`u_j = (\\log r_j - m_j) / \\sigma_j` of every term, stacked on a last dimension (in ``terms`` order)."""
+        logs = torch.stack([raw[term].clamp_min(0.0).add(_TINY).log() for term in self.terms], -1)
+        return (logs - self.term_loc) / self.term_scale
+
+    def ood_score(self, standardized: torch.Tensor) -> torch.Tensor:
+        """The monitor's score from :meth:`standardize`'s output: one term's, or the mean over ``combine``."""
+        chosen = self.combine if self.score_key == COMBINED else (self.score_key,)
+        index = [self.terms.index(term) for term in chosen]
+        return standardized[..., index].mean(-1)
+
+    def scores(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
+               *, check: bool = True) -> dict[str, torch.Tensor]:
+        """Every available term and ``ood_score``, shape ``observation.shape[:-1]``."""
+        raw = self.raw_scores(observation, action, next_observation, check=check)
+        return {**raw, SCORE_KEY: self.ood_score(self.standardize(raw))}
+
+    def _require_calibration(self, what: str) -> None:
+        if not self.calibrated:
+            raise MonitorError(f"{type(self).__name__} is not calibrated: call monitor.calibrate(held_out_data) "
+                               f"before asking for {what}, or build it with flag=False to record scores only.")
 
     def is_ood(self, score: torch.Tensor, *, check: bool = True) -> torch.Tensor:
-        """``score > threshold``; refused on an uncalibrated monitor (``check=False``: for tracing, no check)."""
-        if check and not self.calibrated:
-            raise MonitorError(f"{type(self).__name__} is not calibrated: call monitor.calibrate(training_data) "
-                               "before asking for the 'ood' flag, or build it with flag=False to record scores only.")
+        """``score > threshold``; refused on an uncalibrated monitor (``check=False``: no check, for tracing)."""
+        if check:
+            self._require_calibration("the 'ood' flag")
         return score > self.threshold
 
+    def update_window(self, recent: torch.Tensor, count: torch.Tensor,
+                      score: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of the windowed mean: (recent scores, steps so far capped at ``window``, new score)
+        → (window mean, new recent, new count). ``recent`` has shape ``(*batch, window)``, oldest first,
+        zeros where the episode has not reached; ``count`` has shape ``(*batch, 1)``."""
+        recent = torch.cat([recent[..., 1:], score.unsqueeze(-1).to(recent.dtype)], -1)
+        count = (count + 1).clamp_max(self.window)
+        return recent.sum(-1) / count.squeeze(-1).to(recent.dtype), recent, count
+
     # ------------------------------------------------------------ calibration
-    def _set_calibration(self, threshold: float, quantile: float) -> None:
-        # New tensors rather than in-place copies: a clone() shares its buffers with the original.
-        self.threshold = torch.tensor(float(threshold), dtype=self._dtype)
-        self.quantile = torch.tensor(float(quantile), dtype=torch.float64)
-
     @torch.no_grad()
-    def calibrate(self, data: TensorDictBase, quantile: float = 0.99, batch_size: int = 65536) -> float:
-        """Sets ``threshold`` to the ``quantile`` of ``ood_score`` over ``data`` (the training transitions).
+    def calibrate(self, data: TensorDictBase, quantile: float = 0.99, window_quantile: float = 0.999,
+                  batch_size: int = 2048) -> dict[str, float]:
+        """Sets the terms' scales, ``threshold`` and ``window_threshold`` from held-out trajectories.
 
-        ``data`` holds ``observation``, ``action`` and ``("next", "observation")``; a fraction
-        ``1 - quantile`` of it is then flagged. Returns the threshold.
+        ``data`` holds ``observation``, ``action``, ``("next", "observation")`` and ``"episode"``,
+        from trajectories the detectors were not fitted to. A new in-distribution transition is then
+        flagged with probability at most ``1 - quantile``, and a step's windowed mean with at most
+        ``1 - window_quantile`` (split-conformal calibration; see :func:`conformal_threshold`).
+        Returns both thresholds.
         """
-        if not 0.0 < float(quantile) < 1.0:
-            raise MonitorError(f"{type(self).__name__}.calibrate: quantile must lie in (0, 1), got {quantile}.")
-        scores = self._data_scores(data, batch_size)[SCORE_KEY].reshape(-1)
-        if scores.numel() == 0:
-            raise MonitorError(f"{type(self).__name__}.calibrate: the data holds no transitions.")
-        threshold = torch.quantile(scores.double(), float(quantile)).item()
-        self._set_calibration(threshold, quantile)
-        return threshold
+        name = f"{type(self).__name__}.calibrate"
+        for label, q in (("quantile", quantile), ("window_quantile", window_quantile)):
+            if not 0.0 < float(q) < 1.0:
+                raise MonitorError(f"{name}: {label} must lie in (0, 1), got {q}.")
+        if "episode" not in data.keys():
+            raise MonitorError(f"{name}: the data has no 'episode' entry, so its trajectories (which the windowed "
+                               "mean runs along) cannot be told apart.")
+        raw = self._data_scores(data, batch_size)
+        return self._calibrate_scores(raw, trajectory_ids(data.reshape(-1)), quantile, window_quantile)
 
-    def _data_scores(self, data: TensorDictBase, batch_size: int = 65536) -> dict[str, torch.Tensor]:
+    def _calibrate_scores(self, raw: dict[str, torch.Tensor], trajectory: torch.Tensor, quantile: float,
+                          window_quantile: float) -> dict[str, float]:
+        if len(trajectory) < 2:
+            raise MonitorError(f"{type(self).__name__}.calibrate: the data holds {len(trajectory)} transition(s); "
+                               "it needs at least 2.")
+        logs = torch.stack([raw[term].clamp_min(0.0).add(_TINY).log() for term in self.terms], -1).double()
+        self.term_loc = logs.mean(0).float()
+        self.term_scale = logs.std(0).clamp_min(1e-6).float()
+        score = self.ood_score(self.standardize(raw))
+        window = running_mean(score, self.window, trajectory)
+        self.threshold = torch.tensor(conformal_threshold(score, quantile))
+        self.window_threshold = torch.tensor(conformal_threshold(window, window_quantile))
+        self.quantile = torch.tensor(float(quantile), dtype=torch.float64)
+        self.window_quantile = torch.tensor(float(window_quantile), dtype=torch.float64)
+        return {"threshold": float(self.threshold), "window_threshold": float(self.window_threshold)}
+
+    @staticmethod
+    def _transitions(data: TensorDictBase, label: str, caller: str) -> tuple[torch.Tensor, ...]:
+        keys = ("observation", "action", ("next", "observation"))
+        missing = [key for key in keys if unravel_key(key) not in data.keys(True)]
+        if missing:
+            raise MonitorError(f"{caller}: the {label} data has no {missing}.")
+        values = tuple(data.get(key).reshape(-1, data.get(key).shape[-1]).float() for key in keys)
+        for key, value in zip(("observation", "action", "next observation"), values):
+            if not torch.isfinite(value).all():
+                raise MonitorError(f"{caller}: the {label} data's {key} holds NaN or inf.")
+        return values
+
+    @staticmethod
+    def fit_detectors(data: TensorDictBase, *, members: int = 5, num_cells: Sequence[int] = (200, 200),
+                      steps: int = 3000, max_states: int = 20000,
+                      seed: int = 0) -> tuple[DynamicsEnsemble, NearestStateDistance]:
+        """A :class:`DynamicsEnsemble` and a :class:`NearestStateDistance` fitted to ``data``'s transitions."""
+        observation, action, next_observation = DeploymentMonitor._transitions(data, "train", "fit_detectors")
+        torch.manual_seed(seed)
+        dynamics = DynamicsEnsemble(observation.shape[-1], action.shape[-1], members=members,
+                                    num_cells=tuple(num_cells))
+        dynamics.fit(observation, action, next_observation, steps=steps, seed=seed)
+        states = NearestStateDistance(torch.cat([observation, next_observation]), max_states=max_states, seed=seed)
+        return dynamics, states
+
+    @classmethod
+    def fit(cls, train: TensorDictBase, calibration: TensorDictBase, *, tsidm: TSIDM | None = None,
+            members: int = 5, num_cells: Sequence[int] = (200, 200), steps: int = 3000, max_states: int = 20000,
+            quantile: float = 0.99, window_quantile: float = 0.999, seed: int = 0,
+            **kwargs) -> "DeploymentMonitor":
+        """Split calibration: fits the detectors (:meth:`fit_detectors`) to ``train`` and calibrates on
+        ``calibration``, held-out trajectories. ``tsidm`` adds the T-symmetry terms; its own training data
+        must exclude ``calibration`` too. ``kwargs`` go to the constructor."""
+        cls._transitions(calibration, "calibration", f"{cls.__name__}.fit")
+        dynamics, states = cls.fit_detectors(train, members=members, num_cells=num_cells, steps=steps,
+                                             max_states=max_states, seed=seed)
+        monitor = cls(tsidm=tsidm, dynamics=dynamics, states=states, **kwargs)
+        monitor.calibrate(calibration, quantile=quantile, window_quantile=window_quantile)
+        monitor.metadata = {"calibration": "split", "train_transitions": int(train.numel()),
+                            "calibration_transitions": int(calibration.numel()), "seed": seed}
+        return monitor
+
+    @classmethod
+    def cross_fit(cls, data: TensorDictBase, *, folds: int = 5, members: int = 5,
+                  num_cells: Sequence[int] = (200, 200), steps: int = 3000, max_states: int = 20000,
+                  quantile: float = 0.99, window_quantile: float = 0.999, seed: int = 0,
+                  **kwargs) -> "DeploymentMonitor":
+        """Cross-fitted calibration: every trajectory of ``data`` calibrates, scored by detectors that never saw it.
+
+        The trajectories are dealt into ``folds`` groups; for each, the detectors are fitted to the other
+        groups and score it. The terms' scales and both thresholds come from these out-of-fold scores
+        of the whole dataset, and the deployed detectors are then fitted to all of it. A detector fitted
+        to more data scores new data no higher, so the thresholds err towards fewer alarms. It costs
+        ``folds + 1`` fits, and with few trajectories calibrates on all of them rather than a fifth.
+        A TS-IDM is not refitted here, so the T-symmetry terms need :meth:`fit`.
+        """
+        name = f"{cls.__name__}.cross_fit"
+        if int(folds) < 2:
+            raise MonitorError(f"{name}: folds must be at least 2, got {folds}.")
+        if "episode" not in data.keys():
+            raise MonitorError(f"{name}: the data has no 'episode' entry, so its trajectories cannot be told apart.")
+        cls._transitions(data, "train", name)
+        data = data.reshape(-1)
+        trajectory = trajectory_ids(data)
+        count = int(trajectory[-1]) + 1
+        if count < folds:
+            raise MonitorError(f"{name}: the data holds {count} trajectories, fewer than folds={folds}.")
+        order = torch.randperm(count, generator=torch.Generator().manual_seed(seed))
+        fold_of = torch.empty(count, dtype=torch.long)
+        fold_of[order] = torch.arange(count) % folds
+        fold = fold_of[trajectory]
+        options = {"members": members, "num_cells": num_cells, "steps": steps, "max_states": max_states}
+        raw = {}
+        for k in range(int(folds)):
+            held = fold == k
+            dynamics, states = cls.fit_detectors(data[~held], seed=seed + 1 + k, **options)
+            scores = cls(dynamics=dynamics, states=states, flag=False)._data_scores(data[held])
+            for term, value in scores.items():
+                raw.setdefault(term, torch.empty(len(data)))[held] = value
+        dynamics, states = cls.fit_detectors(data, seed=seed, **options)
+        monitor = cls(dynamics=dynamics, states=states, **kwargs)
+        monitor._calibrate_scores(raw, trajectory, quantile, window_quantile)
+        monitor.metadata = {"calibration": f"cross_fit_{int(folds)}", "train_transitions": len(data),
+                            "calibration_transitions": len(data), "seed": seed}
+        return monitor
+
+    def _data_scores(self, data: TensorDictBase, batch_size: int = 2048) -> dict[str, torch.Tensor]:
         keys = (self.observation_key, self.action_key, ("next", self.observation_key))
         missing = [key for key in keys if unravel_key(key) not in data.keys(True)]
         if missing:
             raise MonitorError(f"{type(self).__name__}: the data has no {missing} "
                                f"(keys: {sorted(map(str, data.keys(True, True)))}).")
         data = data.reshape(-1)
-        chunks = [self.scores(*(chunk.get(key) for key in keys)) for chunk in data.split(batch_size)]
-        return {name: torch.cat([chunk[name] for chunk in chunks]) for name in chunks[0]}
+        chunks = [self.raw_scores(*(chunk.get(key) for key in keys)) for chunk in data.split(batch_size)]
+        return {term: torch.cat([chunk[term] for chunk in chunks]) for term in self.terms}
 
     # ----------------------------------------------------------- tensordicts
     def _write(self, next_tensordict: TensorDictBase, scores: dict[str, torch.Tensor]) -> TensorDictBase:
-        for name, value in scores.items():
-            next_tensordict.set(name, value.unsqueeze(-1))
+        for key, value in scores.items():
+            next_tensordict.set(key, value.unsqueeze(-1))
         if self.flag:
             next_tensordict.set(FLAG_KEY, self.is_ood(scores[SCORE_KEY]).unsqueeze(-1))
         return next_tensordict
@@ -269,22 +473,43 @@ class TSymConsistencyMonitor(Transform):
         # The transition (s, a, s') is complete only now: s and a at the root, s' in the step's output.
         scores = self.scores(tensordict.get(self.observation_key), tensordict.get(self.action_key),
                              next_tensordict.get(self.observation_key))
-        return self._write(next_tensordict, scores)
+        batch = next_tensordict.batch_size
+        device = scores[SCORE_KEY].device
+        recent = tensordict.get(RECENT_KEY, None)
+        count = tensordict.get(COUNT_KEY, None)
+        if recent is None or count is None:  # stepped without a reset through this transform
+            recent = torch.zeros(*batch, self.window, device=device)
+            count = torch.zeros(*batch, 1, dtype=torch.long, device=device)
+        mean, recent, count = self.update_window(recent, count, scores[SCORE_KEY])
+        self._write(next_tensordict, {**scores, WINDOW_KEY: mean.float()})
+        next_tensordict.set(RECENT_KEY, recent)
+        next_tensordict.set(COUNT_KEY, count)
+        if self.flag:
+            self._require_calibration("the 'ood_alarm'")
+            next_tensordict.set(ALARM_KEY, (mean > self.window_threshold).unsqueeze(-1))
+        return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        # No transition has happened yet: zeros, and no flag.
-        zeros = torch.zeros(tensordict_reset.batch_size, dtype=self._dtype, device=tensordict_reset.device)
-        return self._write(tensordict_reset, {name: zeros for name in (*SCORE_TERMS, SCORE_KEY)})
+        # No transition has happened yet: zeros, an empty window, and no flag.
+        batch, device = tensordict_reset.batch_size, tensordict_reset.device
+        zeros = torch.zeros(batch, device=device)
+        self._write(tensordict_reset, {key: zeros for key in (*self.terms, SCORE_KEY, WINDOW_KEY)})
+        tensordict_reset.set(RECENT_KEY, torch.zeros(*batch, self.window, device=device))
+        tensordict_reset.set(COUNT_KEY, torch.zeros(*batch, 1, dtype=torch.long, device=device))
+        if self.flag:
+            tensordict_reset.set(ALARM_KEY, torch.zeros(*batch, 1, dtype=torch.bool, device=device))
+        return tensordict_reset
 
     def _score_transitions(self, tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict = tensordict.get("next", None)
         if next_tensordict is None:
             raise MonitorError(f"{type(self).__name__}: the tensordict has no 'next' entry; the monitor scores "
                                "transitions (observation, action, ('next', observation)).")
-        scores = self._data_scores(tensordict.select(self.observation_key, self.action_key,
-                                                     ("next", self.observation_key)))
+        raw = self._data_scores(tensordict.select(self.observation_key, self.action_key,
+                                                  ("next", self.observation_key)))
+        scores = {**raw, SCORE_KEY: self.ood_score(self.standardize(raw))}
         shape = tensordict.batch_size
-        self._write(next_tensordict, {name: value.reshape(shape) for name, value in scores.items()})
+        self._write(next_tensordict, {key: value.reshape(shape) for key, value in scores.items()})
         return tensordict
 
     def _call(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -309,61 +534,83 @@ class TSymConsistencyMonitor(Transform):
         in_spec = observation_spec[self.observation_key]
         if in_spec.shape[-1:] != (self.observation_dim,):
             raise MonitorError(f"{type(self).__name__}: the environment's observation {self.observation_key!r} has "
-                               f"spec shape {tuple(in_spec.shape)}, but the TS-IDM was trained on observations of "
-                               f"size {self.observation_dim}: it was trained for another environment.")
-        shape = observation_spec.shape + (1,)
-        for name in (*SCORE_TERMS, SCORE_KEY):
-            observation_spec[name] = Unbounded(shape=shape, dtype=self._dtype, device=observation_spec.device)
+                               f"spec shape {tuple(in_spec.shape)}, but the monitor was fitted to observations of "
+                               f"size {self.observation_dim}: it was made for another environment.")
+        batch, device = observation_spec.shape, observation_spec.device
+        for key in (*self.terms, SCORE_KEY, WINDOW_KEY):
+            observation_spec[key] = Unbounded(shape=batch + (1,), dtype=torch.float32, device=device)
+        observation_spec[RECENT_KEY] = Unbounded(shape=batch + (self.window,), dtype=torch.float32, device=device)
+        observation_spec[COUNT_KEY] = Unbounded(shape=batch + (1,), dtype=torch.long, device=device)
         if self.flag:
-            observation_spec[FLAG_KEY] = Categorical(2, shape=shape, dtype=torch.bool, device=observation_spec.device)
+            for key in (FLAG_KEY, ALARM_KEY):
+                observation_spec[key] = Categorical(2, shape=batch + (1,), dtype=torch.bool, device=device)
         return observation_spec
 
     def transform_action_spec(self, action_spec: TensorSpec) -> TensorSpec:
         spec = action_spec[self.action_key] if isinstance(action_spec, Composite) else action_spec
-        if spec.shape[-1:] != (self.action_dim,):
+        if self.action_dim is not None and spec.shape[-1:] != (self.action_dim,):
             raise MonitorError(f"{type(self).__name__}: the environment's action {self.action_key!r} has spec "
-                               f"shape {tuple(spec.shape)}, but the TS-IDM was trained on actions of size "
-                               f"{self.action_dim}: it was trained for another environment.")
+                               f"shape {tuple(spec.shape)}, but the monitor was fitted to actions of size "
+                               f"{self.action_dim}: it was made for another environment.")
         return action_spec
 
     # ------------------------------------------------------------- save/load
     def save(self, path: str | os.PathLike, metadata: dict[str, Any] | None = None) -> None:
-        """Writes the TS-IDM (config and weights), the calibration and the options atomically."""
-        atomic_save(
-            {
-                "format": self.CHECKPOINT_FORMAT,
-                "tsidm": self.tsidm.checkpoint_payload(),
-                "threshold": float(self.threshold),
-                "quantile": float(self.quantile),
-                "score": self.score_key,
-                "dim_reduction": self.dim_reduction,
-                "metadata": dict(metadata or {}),
-            },
-            path,
-        )
+        """Writes the detectors (configs and weights), the calibration and the options atomically."""
+        def weights(module):
+            return {k: v.detach().cpu() for k, v in module.state_dict().items()}
+
+        atomic_save({
+            "format": self.CHECKPOINT_FORMAT,
+            "tsidm": None if self.tsidm is None else self.tsidm.checkpoint_payload(),
+            "dynamics": None if self.dynamics is None else {
+                "observation_dim": self.dynamics.observation_dim, "action_dim": self.dynamics.action_dim,
+                "members": self.dynamics.members, "num_cells": list(self.dynamics.num_cells),
+                "state_dict": weights(self.dynamics)},
+            "states": None if self.states is None else {"state_dict": weights(self.states)},
+            "score": self.score_key, "combine": list(self.combine), "window": self.window,
+            "dim_reduction": self.dim_reduction,
+            "calibration": {k: v.detach().cpu() for k, v in self.state_dict().items()
+                            if k in ("term_loc", "term_scale", "threshold", "window_threshold", "quantile",
+                                     "window_quantile")},
+            "metadata": {**self.metadata, **(metadata or {})},
+        }, path)
 
     @classmethod
-    def load(
-        cls,
-        path: str | os.PathLike,
-        *,
-        observation_dim: int | None = None,
-        action_dim: int | None = None,
-        **kwargs,
-    ) -> "TSymConsistencyMonitor":
-        """Rebuilds a monitor written by :meth:`save`; ``observation_dim``/``action_dim`` refuse another task's.
-
-        ``kwargs`` (``flag``, ``observation_key``, ``action_key``) go to the constructor.
-        """
+    def load(cls, path: str | os.PathLike, *, observation_dim: int | None = None, action_dim: int | None = None,
+             **kwargs) -> "DeploymentMonitor":
+        """Rebuilds a monitor written by :meth:`save` (read with ``weights_only``); ``observation_dim`` and
+        ``action_dim`` refuse another task's. ``kwargs`` (``flag``, the keys) go to the constructor."""
         payload = load_checkpoint(path, cls.CHECKPOINT_FORMAT)
-        tsidm = TSIDM.from_payload(payload["tsidm"], path, observation_dim=observation_dim, action_dim=action_dim)
-        threshold = payload["threshold"]
-        monitor = cls(tsidm, score=payload["score"], dim_reduction=payload["dim_reduction"],
-                      threshold=None if math.isnan(threshold) else threshold, quantile=payload["quantile"], **kwargs)
-        monitor.metadata = payload.get("metadata", {})
+        try:
+            tsidm = None if payload["tsidm"] is None else TSIDM.from_payload(
+                payload["tsidm"], path, observation_dim=observation_dim, action_dim=action_dim)
+            dynamics = states = None
+            if payload["dynamics"] is not None:
+                d = payload["dynamics"]
+                dynamics = DynamicsEnsemble(d["observation_dim"], d["action_dim"], members=d["members"],
+                                            num_cells=tuple(d["num_cells"]))
+                dynamics.load_state_dict(d["state_dict"])
+            if payload["states"] is not None:
+                bank = payload["states"]["state_dict"]["bank"]
+                states = NearestStateDistance.empty(bank.shape[-1], bank.shape[0])
+                states.load_state_dict(payload["states"]["state_dict"])
+            monitor = cls(tsidm=tsidm, dynamics=dynamics, states=states, score=payload["score"],
+                          combine=payload["combine"], window=payload["window"],
+                          dim_reduction=payload["dim_reduction"], observation_dim=observation_dim,
+                          action_dim=action_dim, **kwargs)
+            monitor.load_state_dict(payload["calibration"], strict=False)
+        except MonitorError as err:
+            raise CheckpointError(f"{path}: {err}") from None
+        except (KeyError, RuntimeError, TypeError) as err:
+            raise CheckpointError(f"{path} is a damaged {cls.CHECKPOINT_FORMAT!r} checkpoint: "
+                                  f"{type(err).__name__}: {err}") from None
+        monitor.metadata = dict(payload.get("metadata", {}))
         return monitor
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(score={self.score_key!r}, threshold={float(self.threshold):.4g}, "
-                f"quantile={float(self.quantile):.4g}, observation_dim={self.observation_dim}, "
+        detectors = [name for name in ("tsidm", "dynamics", "states") if getattr(self, name) is not None]
+        return (f"{type(self).__name__}(detectors={detectors}, score={self.score_key!r}, combine={list(self.combine)}, "
+                f"window={self.window}, threshold={float(self.threshold):.4g}, "
+                f"window_threshold={float(self.window_threshold):.4g}, observation_dim={self.observation_dim}, "
                 f"action_dim={self.action_dim})")

@@ -10,13 +10,16 @@ from torchrl_tels.modules.actors import (
     save_guide_policy,
     StateEncoder,
 )
+from torchrl_tels.modules.detectors import DynamicsEnsemble, NearestStateDistance
 from torchrl_tels.modules.tsidm import jvp, squared_norm, TSIDM
 
 __all__ = [
+    "DynamicsEnsemble",
     "GUIDE_KEY",
     "IndependentNormal",
     "LATENT_KEY",
     "LatentActionHead",
+    "NearestStateDistance",
     "StateEncoder",
     "TSIDM",
     "jvp",
