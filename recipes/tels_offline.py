@@ -12,7 +12,8 @@ frozen encoder and trains the latent value (Eq. 8) and the guide policy
 lands in ``run_dir``: the resolved config, CSV metrics, ``tsidm.pt``,
 ``state.pt`` (for ``resume=true``), ``policy.pt`` (the guide; with ``tsidm.pt``
 it rebuilds the actor: ``torchrl_tels.modules.load_tels_actor``), ``monitor.pt``
-(the T-symmetry consistency monitor, calibrated on the training data),
+(the deployment monitor: a dynamics ensemble and the nearest data state, calibrated on
+trajectories its detectors were not fitted to),
 ``results.json`` and PNG plots. A bad config, dataset or checkpoint stops the run before
 ``run_dir`` is created.
 
@@ -58,7 +59,9 @@ from torchrl_tels.trainer import (  # noqa: E402
     evaluation_scalars,
     fit_tsidm_seeds,
     load_pretrained_tsidm,
+    check_monitor_data,
     make_data,
+    make_monitor,
     make_stage1,
     make_stage2,
     RunState,
@@ -116,15 +119,17 @@ def train(cfg: DictConfig) -> dict:
     if (done := finished_results(run, run_dir)) is not None:
         return done
     data, task = make_data(cfg)
+    check_monitor_data(cfg, data)
     pretrained = load_pretrained_tsidm(cfg, data)
     logger = open_run_dir(cfg, run, run_dir)
+    # The deployment monitor (monitor.pt) needs only the data; recipes/export_policy.py exports it with the policy.
+    monitor = make_monitor(cfg, data, run_dir)
 
     # Algorithm 1, lines 1-4: train the TS-IDM (Eq. 3-7).
     tsidm = make_stage1(cfg, data, run, run_dir, logger, pretrained)
     # Line 6: encode the dataset with the frozen φ_s; build V (Eq. 8), π_g (Eq. 9/10), the actor (Eq. 11).
     env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1)  # the episodes as one batch
     stage2 = make_stage2(cfg, data, tsidm, env.action_spec_unbatched)
-    stage2.monitor.save(run_dir / "monitor.pt")  # calibrated on the training data; recipes/export_policy.py reads it
     start = 0
     if run.resumes("policy"):
         run.restore(**stage2.modules())
@@ -144,10 +149,10 @@ def train(cfg: DictConfig) -> dict:
                     run.policy_history.setdefault(key, []).append((step + 1, value))
                 logger.log_scalars(scalars, step + 1)
             if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
-                with run.time("eval_s"):  # the final evaluation also records the consistency monitor
-                    monitor = stage2.monitor if step + 1 == cfg.policy.steps else None
+                with run.time("eval_s"):  # the final evaluation also records the deployment monitor
+                    final = step + 1 == cfg.policy.steps
                     run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats,
-                                                    monitor=monitor))
+                                                    monitor=monitor if final else None))
                 logger.log_scalars(evaluation_scalars(run.evaluations[-1]), step + 1)
                 progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}", eval_s=f"{run.wall['eval_s']:.0f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
@@ -188,6 +193,8 @@ def train_seeds(cfg: DictConfig) -> dict:
     task = task[0]
     if not cfg.tsidm.checkpoint:
         check_same_stage1_length(cfg, datas, seeds)
+    for c, data in zip(configs, datas):
+        check_monitor_data(c, data)
     pretrained = load_pretrained_tsidm(cfg, datas[0])
     seed_runs = ([RunState.from_seed_record(r) for r in run.per_seed] if run.per_seed
                  else [RunState(config={}) for _ in seeds])
@@ -195,6 +202,7 @@ def train_seeds(cfg: DictConfig) -> dict:
     for c in configs:
         Path(c.run_dir).mkdir(parents=True, exist_ok=True)
         (Path(c.run_dir) / "config.yaml").write_text(OmegaConf.to_yaml(c, resolve=True))
+    monitors = [make_monitor(c, data, Path(c.run_dir)) for c, data in zip(configs, datas)]
 
     def save(**modules):
         run.per_seed = [r.seed_record() for r in seed_runs]
@@ -230,7 +238,6 @@ def train_seeds(cfg: DictConfig) -> dict:
         rng.start(k, c.seed)
         with rng.use(k):
             stages.append(make_stage2(c, data, tsidm, env.action_spec_unbatched))
-        stages[-1].monitor.save(Path(c.run_dir) / "monitor.pt")
     stage2 = StackedStage2(stages, rng, labels=[f"seed {seed}" for seed in seeds])
     torch.manual_seed(cfg.seed + 1000)  # the global stream of stage 2, the same whether or not stage 1 ran here
     start = 0
@@ -254,11 +261,12 @@ def train_seeds(cfg: DictConfig) -> dict:
             if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
                 stage2.write_back()
                 with run.time("eval_s"):
-                    for k, (c, stage, seed_run) in enumerate(zip(configs, stages, seed_runs)):
-                        monitor = stage.monitor if step + 1 == cfg.policy.steps else None
+                    final = step + 1 == cfg.policy.steps
+                    for k, (c, stage, seed_run, monitor) in enumerate(zip(configs, stages, seed_runs, monitors)):
                         with rng.use(k):
                             seed_run.evaluations.append(evaluate(c, stage.actor, env, task, step + 1,
-                                                                 stage.latent_stats, monitor=monitor))
+                                                                 stage.latent_stats,
+                                                                 monitor=monitor if final else None))
                         logger.log_scalars(evaluation_scalars(seed_run.evaluations[-1], f"seed{c.seed}/"), step + 1)
                 progress.set_postfix(score=f"{sum(r.evaluations[-1]['score'] for r in seed_runs) / len(seeds):.1f}",
                                      eval_s=f"{run.wall['eval_s']:.0f}")

@@ -13,7 +13,8 @@ import torch
 
 from torchrl.envs import GymEnv
 
-from torchrl_tels.envs import TSymConsistencyMonitor
+from torchrl_tels.envs import DeploymentMonitor
+from torchrl_tels.envs.monitor import running_mean
 from torchrl_tels.export import export_run
 from torchrl_tels.modules import load_tels_actor, make_guide_policy, save_guide_policy, TSIDM
 
@@ -21,6 +22,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 OBS_DIM, ACTION_DIM, LATENT_DIM = 11, 3, 8  # Hopper-v4
 CELLS = (32, 32)
 N = 1000
+WINDOW = 3
 
 
 def tiny_tsidm(latent_dim: int = LATENT_DIM, observation_dim: int = OBS_DIM, standardized: bool = False) -> TSIDM:
@@ -46,10 +48,14 @@ def make_run(run_dir: Path, *, mode: str = "deterministic", standardized: bool =
     save_guide_policy(run_dir / "policy.pt", guide, latent_dim=LATENT_DIM, mode=mode, num_cells=CELLS,
                       actor_options={"reencode_proposal": reencode})
     if monitor:
-        m = TSymConsistencyMonitor(tsidm)
-        m.calibrate(transitions(500), quantile=0.9)
-        m.save(run_dir / "monitor.pt")
-    (run_dir / "results.json").write_text(json.dumps({"env": "Hopper-v4", "final_normalized_score_mean": 0.0}))
+        data = transitions(600)
+        m = DeploymentMonitor.fit(data[:400], data[400:], tsidm=tsidm, members=2, num_cells=CELLS, steps=20,
+                                  quantile=0.9, window=WINDOW, window_quantile=0.9)
+        m.save(run_dir / "monitor.pt", metadata={"dataset": "hopper-medium-v2-10k"})
+    (run_dir / "results.json").write_text(json.dumps({"env": "Hopper-v4", "dataset": "hopper-medium-v2-10k",
+                                                      "final_normalized_score_mean": 0.0}))
+    (run_dir / "config.yaml").write_text("monitor: {folds: 2, members: 2, num_cells: [16, 16], steps: 20, "
+                                         "window: 5, window_quantile: 0.99}\n")
     return run_dir
 
 
@@ -59,7 +65,8 @@ def transitions(n: int, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     observation = 2 * torch.randn(n, OBS_DIM, generator=g)
     return TensorDict({"observation": observation, "action": torch.rand(n, ACTION_DIM, generator=g) * 2 - 1,
-                       ("next", "observation"): observation + 0.1 * torch.randn(n, OBS_DIM, generator=g)}, [n])
+                       ("next", "observation"): observation + 0.1 * torch.randn(n, OBS_DIM, generator=g),
+                       "episode": torch.arange(n) // 50}, [n])
 
 
 def run_fresh_torch(code: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -93,13 +100,18 @@ def test_exported_programs_load_with_torch_alone_and_compute_what_the_library_do
     written = export_run(run_dir, log=lambda message: None)
     assert sorted(written) == ["export.json", "monitor.pt2", "policy.pt2"]
     data = transitions(N, seed=3)
-    torch.save({"observation": data["observation"], "action": data["action"], "next": data["next", "observation"]},
-               tmp_path / "transitions.pt")
+    steps = [data[i * 250:(i + 1) * 250] for i in range(4)]  # four steps of a batch of 250 streams
+    torch.save({"observation": data["observation"], "steps": [(t["observation"], t["action"], t["next", "observation"])
+                                                              for t in steps]}, tmp_path / "transitions.pt")
     run_fresh_torch("t = torch.load('transitions.pt')\n"
                     "p = torch.export.load('run/export/policy.pt2').module()\n"
                     "m = torch.export.load('run/export/monitor.pt2').module()\n"
-                    "torch.save({'actions': p(t['observation']),\n"
-                    "            'scores': m(t['observation'], t['action'], t['next'])}, 'out.pt')\n", tmp_path)
+                    f"recent, count = torch.zeros(250, {WINDOW}), torch.zeros(250, 1, dtype=torch.long)\n"
+                    "outs = []\n"
+                    "for o, a, o2 in t['steps']:\n"
+                    "    *out, recent, count = m(o, a, o2, recent, count)\n"
+                    "    outs.append(out)\n"
+                    "torch.save({'actions': p(t['observation']), 'monitor': outs}, 'out.pt')\n", tmp_path)
     out = torch.load(tmp_path / "out.pt")
 
     expected = library_actions(run_dir, data["observation"])
@@ -108,25 +120,32 @@ def test_exported_programs_load_with_torch_alone_and_compute_what_the_library_do
     # the clipping is part of the program: some actions sit on the bounds, none beyond
     assert (expected.abs() == 1).float().mean() > 0.05 and out["actions"].abs().max() <= 1
 
-    score, ood = out["scores"]
-    expected = TSymConsistencyMonitor.load(run_dir / "monitor.pt")(data.clone())["next"]
-    torch.testing.assert_close(score, expected["ood_score"].squeeze(-1), rtol=1e-5, atol=1e-6)
-    assert torch.equal(ood, expected["ood"].squeeze(-1)) and 0 < ood.float().mean() < 1
+    monitor = DeploymentMonitor.load(run_dir / "monitor.pt")
+    scores = torch.stack([monitor(t.clone())["next", "ood_score"].squeeze(-1) for t in steps], -1)  # (250, 4)
+    windows = running_mean(scores, WINDOW).float()
+    for k, (score, ood, window, alarm) in enumerate(out["monitor"]):
+        torch.testing.assert_close(score, scores[:, k], rtol=1e-5, atol=1e-5)
+        assert torch.equal(ood, score > monitor.threshold)
+        torch.testing.assert_close(window, windows[:, k], rtol=1e-5, atol=1e-5)
+        assert torch.equal(alarm, window > monitor.window_threshold)
+    flags = torch.stack([o[1] for o in out["monitor"]])
+    assert 0 < flags.float().mean() < 1
     manifest = json.loads((run_dir / "export" / "export.json").read_text())
     assert manifest["observation_dim"] == OBS_DIM and manifest["action_high"] == [1.0, 1.0, 1.0]
 
 
-def test_calibrate_option_exports_a_monitor_calibrated_on_the_dataset(tmp_path):
+def test_calibrate_option_exports_a_monitor_fitted_to_the_dataset_with_the_runs_settings(tmp_path):
     run_dir = make_run(tmp_path / "run")
     written = export_run(run_dir, tmp_path / "out", calibrate="hopper-medium-v2-10k", quantile=0.95,
                          log=lambda message: None)
     assert {"monitor.pt2", "monitor.pt"} <= set(written)
-    monitor = TSymConsistencyMonitor.load(written["monitor.pt"])
-    from torchrl_tels.data import load_dataset
-
-    flagged = monitor(load_dataset("hopper-medium-v2-10k"))["next", "ood"].float().mean().item()
-    assert abs(flagged - 0.05) < 1e-3
-    assert json.loads(written["export.json"].read_text())["monitor"]["quantile"] == 0.95
+    monitor = DeploymentMonitor.load(written["monitor.pt"])
+    # the run's config.yaml: 2 folds, 2 members of 16 units, a window of 5 steps
+    assert monitor.metadata["calibration"] == "cross_fit_2" and monitor.metadata["dataset"] == "hopper-medium-v2-10k"
+    assert monitor.dynamics.members == 2 and monitor.dynamics.num_cells == (16, 16) and monitor.window == 5
+    manifest = json.loads(written["export.json"].read_text())["monitor"]
+    assert manifest["quantile"] == 0.95 and manifest["window_quantile"] == 0.99
+    assert manifest["threshold"] == float(monitor.threshold)
 
 
 def test_policy_only_without_a_monitor_says_so(tmp_path):
@@ -200,19 +219,19 @@ def test_foreign_tsidm_is_refused(tmp_path, capsys):
         run_dir, capsys)
 
 
-def test_monitor_of_another_tsidm_is_refused(tmp_path, capsys):
+def test_monitor_of_another_task_is_refused(tmp_path, capsys):
     run_dir = make_run(tmp_path / "run", monitor=True)
-    other = TSymConsistencyMonitor(tiny_tsidm())  # same sizes, other weights
-    other.calibrate(transitions(100))
-    other.save(run_dir / "monitor.pt")
-    assert "calibrated with another TS-IDM" in expect_refusal(run_dir, capsys)
+    other = DeploymentMonitor.load(run_dir / "monitor.pt")
+    other.save(run_dir / "monitor.pt", metadata={"dataset": "walker2d-medium-v2-10k"})
+    assert "fitted to 'walker2d-medium-v2-10k', but the run trained on 'hopper-medium-v2-10k'" in expect_refusal(
+        run_dir, capsys)
 
 
 def test_bad_calibration_data_and_out_folder_are_refused(tmp_path, capsys):
     run_dir = make_run(tmp_path / "run")
     message = expect_refusal(run_dir, capsys, "--calibrate", str(walker_npz(tmp_path)))
-    assert "observation has shape (50, 17)" in message and "size 11" in message
-    assert "quantile must lie in (0, 1)" in expect_refusal(run_dir, capsys, "--calibrate", "hopper-medium-v2-10k",
+    assert "observations have size 17, but the run's environment's have size 11" in message
+    assert "--quantile must lie in (0, 1)" in expect_refusal(run_dir, capsys, "--calibrate", "hopper-medium-v2-10k",
                                                           "--quantile", "1.5")
     assert "does not exist" in expect_refusal(run_dir, capsys, "--out", str(tmp_path / "no" / "such"))
     assert not (tmp_path / "no").exists()
@@ -242,7 +261,8 @@ def test_a_failure_while_writing_leaves_no_folder_and_keeps_an_old_export(tmp_pa
     monkeypatch.setattr(torch.export, "save", save_then_fail)
     with pytest.raises(OSError, match="disk full"):
         export_run(run_dir, log=lambda message: None)
-    assert sorted(p.name for p in run_dir.iterdir()) == ["monitor.pt", "policy.pt", "results.json", "tsidm.pt"]
+    assert sorted(p.name for p in run_dir.iterdir()) == ["config.yaml", "monitor.pt", "policy.pt", "results.json",
+                                                         "tsidm.pt"]
     monkeypatch.setattr(torch.export, "save", real_save)
     export_run(run_dir, log=lambda message: None)
     old = _tree(run_dir / "export")

@@ -1,5 +1,8 @@
-"""TSymConsistencyMonitor: its scores against a hand computation, in an env, on buffers, calibration, files, errors."""
+"""DeploymentMonitor: each score against an independent computation, calibration that holds on new data,
+the windowed alarm in an env, files, and refusals."""
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
@@ -10,10 +13,11 @@ from torchrl.envs import GymEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_tels.checkpoint import CheckpointError
-from torchrl_tels.envs import TSymConsistencyMonitor
-from torchrl_tels.envs.monitor import SCORE_TERMS
+from torchrl_tels.data import split_trajectories
+from torchrl_tels.envs import DeploymentMonitor
+from torchrl_tels.envs.monitor import conformal_threshold, running_mean, SCORE_TERMS, TSIDM_TERMS
 from torchrl_tels.errors import MonitorError, TelsError
-from torchrl_tels.modules import TSIDM
+from torchrl_tels.modules import DynamicsEnsemble, NearestStateDistance, TSIDM
 
 OBS_DIM, ACTION_DIM, LATENT_DIM = 11, 3, 8  # Hopper-v4; latent != obs size to catch shape mix-ups
 
@@ -28,18 +32,37 @@ def small_tsidm(observation_dim: int = OBS_DIM, action_dim: int = ACTION_DIM, **
     return tsidm
 
 
-def transitions(n: int = 256, seed: int = 0) -> TensorDict:
+def linear_plant(n_trajectories: int, length: int = 50, seed: int = 0, gain: float = 1.0,
+                 observation_dim: int = OBS_DIM) -> TensorDict:
+    """Trajectories of s' = s + 0.1 (A s + gain B a) + noise, with random actions: a plant with known dynamics."""
+    g = torch.Generator().manual_seed(1234)  # the plant is the same for every seed
+    a_matrix = -0.5 * torch.eye(observation_dim) + 0.1 * torch.randn(observation_dim, observation_dim, generator=g)
+    b_matrix = torch.randn(ACTION_DIM, observation_dim, generator=g)
     g = torch.Generator().manual_seed(seed)
-    observation = torch.randn(n, OBS_DIM, generator=g)
-    return TensorDict({
-        "observation": observation,
-        "action": torch.rand(n, ACTION_DIM, generator=g) * 2 - 1,
-        ("next", "observation"): observation + 0.1 * torch.randn(n, OBS_DIM, generator=g),
-    }, batch_size=[n])
+    rows = {"observation": [], "action": [], "next": [], "episode": []}
+    for e in range(n_trajectories):
+        s = torch.randn(observation_dim, generator=g)
+        for _ in range(length):
+            a = torch.rand(ACTION_DIM, generator=g) * 2 - 1
+            s_next = s + 0.1 * (s @ a_matrix + gain * a @ b_matrix) + 0.02 * torch.randn(observation_dim, generator=g)
+            for key, value in zip(rows, (s, a, s_next, torch.tensor(e))):
+                rows[key].append(value)
+            s = s_next
+    n = len(rows["episode"])
+    return TensorDict({"observation": torch.stack(rows["observation"]), "action": torch.stack(rows["action"]),
+                       ("next", "observation"): torch.stack(rows["next"]), "episode": torch.stack(rows["episode"])},
+                      [n])
 
 
-def hand_scores(tsidm: TSIDM, observation, action, next_observation) -> dict[str, torch.Tensor]:
-    """The three scores from the TS-IDM's sub-networks, written out (no TSIDM helper methods)."""
+def small_monitor(data: TensorDict | None = None, **kwargs) -> DeploymentMonitor:
+    data = linear_plant(8) if data is None else data
+    train, held = split_trajectories(data, 0.75, seed=0)
+    return DeploymentMonitor.fit(train, held, members=3, num_cells=(32, 32), steps=200, quantile=0.9,
+                                 window_quantile=0.95, **kwargs)
+
+
+def hand_tsidm_scores(tsidm: TSIDM, observation, action, next_observation) -> dict[str, torch.Tensor]:
+    """The three T-symmetry terms from the TS-IDM's sub-networks, written out (no TSIDM helper methods)."""
     tsidm = tsidm.eval()
     with torch.no_grad():
         def encode(s):
@@ -59,168 +82,260 @@ def hand_scores(tsidm: TSIDM, observation, action, next_observation) -> dict[str
         }
 
 
-def calibrated(tsidm: TSIDM | None = None, quantile: float = 0.9, **kwargs) -> TSymConsistencyMonitor:
-    monitor = TSymConsistencyMonitor(tsidm or small_tsidm(), **kwargs)
-    monitor.calibrate(transitions(512), quantile=quantile)
-    return monitor
+def hand_ensemble_scores(ensemble: DynamicsEnsemble, observation, action, next_observation):
+    """Each member as its own chain of nn.functional.linear, then the mean's miss and the spread."""
+    s = (observation - ensemble.obs_loc) / ensemble.obs_scale
+    target = (next_observation - observation - ensemble.delta_loc) / ensemble.delta_scale
+    predictions = []
+    for k in range(ensemble.members):
+        x = torch.cat([s, action], -1)
+        for i, (w, b) in enumerate(zip(ensemble.weights, ensemble.biases)):
+            x = torch.nn.functional.linear(x, w[k].T, b[k, 0])
+            if i < len(ensemble.weights) - 1:
+                x = x.clamp_min(0)
+        predictions.append(x)
+    p = torch.stack(predictions)
+    mean = p.mean(0)
+    spread = ((p - mean) ** 2).mean(0).sum(-1)
+    return ((mean - target) ** 2).sum(-1), spread
 
 
 # ------------------------------------------------------------------ the scores
 @pytest.mark.parametrize("standardized", [False, True])
-def test_scores_equal_a_hand_computation_from_the_sub_networks(standardized):
+def test_tsidm_terms_equal_a_hand_computation_from_the_sub_networks(standardized):
     tsidm = small_tsidm(latent_standardization=standardized)
     if standardized:
         tsidm.fit_latent_standardization(torch.randn(200, OBS_DIM) * 3)
-    monitor = TSymConsistencyMonitor(tsidm, flag=False)
-    data = transitions()
+    monitor = DeploymentMonitor(tsidm=tsidm, score="tsym_inconsistency", flag=False)
+    data = linear_plant(2)
     td = monitor(data.clone())
-    expected = hand_scores(tsidm, data["observation"], data["action"], data["next", "observation"])
-    for name in SCORE_TERMS:
+    expected = hand_tsidm_scores(tsidm, data["observation"], data["action"], data["next", "observation"])
+    for name in TSIDM_TERMS:
         torch.testing.assert_close(td["next", name].squeeze(-1), expected[name])
-        assert td["next", name].shape == (256, 1)
-    torch.testing.assert_close(td["next", "ood_score"], td["next", "tsym_inconsistency"])
+        assert td["next", name].shape == (100, 1)
     # the three scores are different numbers, so a mixed-up key would be caught
     assert not torch.allclose(expected["tsym_inconsistency"], expected["dynamics_residual"])
 
 
-def test_h_inv_dropout_is_off_even_in_train_mode():
-    tsidm = small_tsidm()  # inverse_dropout=0.1: a monitor left in train mode would be random
-    monitor = TSymConsistencyMonitor(tsidm, flag=False).train()
-    data = transitions()
+def test_ensemble_and_nearest_state_equal_independent_computations():
+    data = linear_plant(4)
+    monitor = small_monitor(data)
+    o, a, o2 = data["observation"], data["action"], data["next", "observation"]
+    raw = monitor.raw_scores(o, a, o2)
+    residual, spread = hand_ensemble_scores(monitor.dynamics, o, a, o2)
+    torch.testing.assert_close(raw["model_residual"], residual, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(raw["model_disagreement"], spread, rtol=1e-4, atol=1e-6)
+    states = monitor.states
+    bank = states.bank
+    brute = torch.cdist((o2 - states.obs_loc) / states.obs_scale, bank).min(-1).values
+    torch.testing.assert_close(raw["nearest_state"], brute, rtol=1e-4, atol=1e-4)
+    # the bank holds the training states, normalized by their own mean and spread
+    assert bank.mean(0).abs().max() < 1e-4 and (bank.std(0) - 1).abs().max() < 1e-3
+
+
+def test_ood_score_is_the_mean_of_standardized_log_terms():
+    monitor = small_monitor(linear_plant(6))
+    data = linear_plant(2, seed=9)  # new states: none sits on the bank, where the distance is 0
+    assert monitor.combine == ("model_residual", "nearest_state") and monitor.score_key == "combined"
+    raw = monitor.raw_scores(data["observation"], data["action"], data["next", "observation"])
+    u = {t: (raw[t].log() - monitor.term_loc[i]) / monitor.term_scale[i] for i, t in enumerate(monitor.terms)}
+    td = monitor(data.clone())
+    torch.testing.assert_close(td["next", "ood_score"].squeeze(-1), (u["model_residual"] + u["nearest_state"]) / 2)
+    single = DeploymentMonitor(dynamics=monitor.dynamics, states=monitor.states, score="nearest_state", flag=False)
+    single.load_state_dict(monitor.state_dict())
+    torch.testing.assert_close(single(data.clone())["next", "ood_score"].squeeze(-1), u["nearest_state"])
+
+
+def test_detectors_are_frozen_and_deterministic_in_train_mode():
+    monitor = DeploymentMonitor(tsidm=small_tsidm(), score="tsym_inconsistency", flag=False).train()
+    data = linear_plant(2)  # h_inv's dropout 0.1: a monitor left in train mode would be random
     first, second = monitor(data.clone()), monitor(data.clone())
     torch.testing.assert_close(first["next", "ood_score"], second["next", "ood_score"], rtol=0, atol=0)
+    assert not any(p.requires_grad for p in monitor.parameters())
 
 
-def test_score_option_chooses_the_ood_score():
-    monitor = TSymConsistencyMonitor(small_tsidm(), score="action_residual", flag=False)
-    td = monitor(transitions())
-    torch.testing.assert_close(td["next", "ood_score"], td["next", "action_residual"])
-    with pytest.raises(MonitorError, match="score must be one of"):
-        TSymConsistencyMonitor(small_tsidm(), score="loss")
+# -------------------------------------------------------------- calibration
+def test_conformal_threshold_is_the_ceil_n_plus_1_q_th_smallest():
+    scores = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0, 9.0, 7.0, 8.0, 6.0])  # n = 9: 1..9
+    assert conformal_threshold(scores, 0.8) == 8.0  # ceil(10 * 0.8) = 8th smallest
+    assert conformal_threshold(scores, 0.5) == 5.0
+    assert conformal_threshold(scores, 0.95) == 9.0  # ceil(9.5) = 10 > n: the largest
+    # exchangeable new scores exceed it with probability <= 1 - q (here about 0.1)
+    g = torch.Generator().manual_seed(0)
+    rates = [(torch.randn(20000, generator=g) > conformal_threshold(torch.randn(199, generator=g), 0.9))
+             .float().mean() for _ in range(200)]
+    assert 0.09 < float(torch.stack(rates).mean()) <= 0.1 + 0.005
+
+
+def test_running_mean_restarts_at_each_trajectory():
+    scores = torch.arange(10, dtype=torch.float64)
+    trajectory = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1, 1, 1])
+    expected = []
+    for t in range(10):
+        first = 0 if t < 6 else 6
+        window = scores[max(first, t - 2): t + 1]
+        expected.append(window.mean())
+    torch.testing.assert_close(running_mean(scores, 3, trajectory), torch.stack(expected))
+    torch.testing.assert_close(running_mean(scores, 1), scores)
+
+
+@pytest.mark.parametrize("method", ["split", "cross_fit"])
+def test_held_out_calibration_holds_on_new_trajectories_where_in_sample_over_alarms(method):
+    data = linear_plant(24, seed=0)
+    new = linear_plant(40, seed=1)  # new trajectories of the same plant
+    options = {"members": 3, "num_cells": (32, 32), "steps": 400, "quantile": 0.9}
+    if method == "split":
+        train, held = split_trajectories(data, 0.6, seed=0)
+        monitor = DeploymentMonitor.fit(train, held, **options)
+    else:
+        monitor = DeploymentMonitor.cross_fit(data, folds=4, **options)
+    rate = monitor(new.clone())["next", "ood"].float().mean().item()
+    assert 0.05 <= rate <= 0.15, rate  # nominal 0.10
+
+    in_sample = DeploymentMonitor(dynamics=monitor.dynamics, states=monitor.states)
+    in_sample.calibrate(data if method == "cross_fit" else train, quantile=0.9)
+    over = in_sample(new.clone())["next", "ood"].float().mean().item()
+    assert over > 0.2, over  # the detectors score their own training data low: the old calibration's fault
+
+
+def test_ensemble_learns_the_plant_and_a_changed_plant_scores_higher():
+    from benchmarks.monitor_benchmark import auroc
+
+    data = linear_plant(20)
+    ensemble = DynamicsEnsemble(OBS_DIM, ACTION_DIM, members=3, num_cells=(64, 64))
+    history = ensemble.fit(data["observation"], data["action"], data["next", "observation"], steps=600, seed=0)
+    assert history[-1] < 0.2 * history[0]
+    same, changed = linear_plant(10, seed=5), linear_plant(10, seed=5, gain=1.5)
+    with torch.no_grad():
+        same_r, _ = ensemble.scores(same["observation"], same["action"], same["next", "observation"])
+        changed_r, _ = ensemble.scores(changed["observation"], changed["action"], changed["next", "observation"])
+    assert auroc(same_r.numpy(), changed_r.numpy()) > 0.9
+    # over windows of 20 steps the change is plainer still
+    trajectory = same["episode"]
+    assert auroc(running_mean(same_r, 20, trajectory).numpy()[19::20],
+                 running_mean(changed_r, 20, trajectory).numpy()[19::20]) == 1.0
 
 
 # ----------------------------------------------------------------------- in an env
-def test_env_specs_and_step_scores_follow_the_transition():
-    monitor = calibrated(quantile=0.5)
+def test_env_specs_window_and_alarm_follow_the_episode():
+    from torchrl_tels.data import load_dataset
+
+    data = load_dataset("hopper-medium-v2-10k")[:3000]
+    monitor = small_monitor(data, window=5)
     env = TransformedEnv(GymEnv("Hopper-v4"), monitor)
     env.set_seed(0)
     check_env_specs(env)
     spec = env.observation_spec
-    assert spec["ood_score"].shape == (1,) and spec["ood"].dtype == torch.bool
+    assert spec["ood_window"].shape == (1,) and spec["ood_alarm"].dtype == torch.bool
+    assert spec["ood_recent"].shape == (5,)
 
-    rollout = env.rollout(6)
-    expected = hand_scores(monitor.tsidm, rollout["observation"], rollout["action"], rollout["next", "observation"])
-    for name in SCORE_TERMS:
-        torch.testing.assert_close(rollout["next", name].squeeze(-1), expected[name])
-    torch.testing.assert_close(rollout["next", "ood"].squeeze(-1), expected["tsym_inconsistency"] > monitor.threshold)
-    # the reset row carries zeros and no flag: no transition has happened yet
-    assert (rollout["ood_score"][0] == 0).all() and not rollout["ood"][0].any()
-    # after step 0, the root holds the previous transition's score (as any observation entry)
-    torch.testing.assert_close(rollout["ood_score"][1:], rollout["next", "ood_score"][:-1])
+    rollout = env.rollout(40, break_when_any_done=False)  # random actions: the hopper falls and the env resets
+    nxt = rollout["next"]
+    done = nxt["done"].squeeze(-1)
+    assert done[:-1].any()
+    trajectory = torch.cat([torch.zeros(1, dtype=torch.long), done[:-1].long().cumsum(0)])
+    expected = monitor.scores(rollout["observation"], rollout["action"], nxt["observation"])
+    for name in (*SCORE_TERMS[3:], "ood_score"):  # one step at a time against one batch: float rounding apart
+        torch.testing.assert_close(nxt[name].squeeze(-1), expected[name], rtol=1e-4, atol=1e-4)
+    score = nxt["ood_score"].squeeze(-1)
+    torch.testing.assert_close(nxt["ood_window"].squeeze(-1), running_mean(score, 5, trajectory).float())
+    assert torch.equal(nxt["ood_alarm"].squeeze(-1), nxt["ood_window"].squeeze(-1) > monitor.window_threshold)
+    assert torch.equal(nxt["ood"].squeeze(-1), score > monitor.threshold)
+    step_in_episode = torch.arange(40) - torch.cummax(torch.where(
+        torch.cat([torch.ones(1, dtype=torch.bool), trajectory[1:] != trajectory[:-1]]), torch.arange(40), 0), 0).values
+    assert torch.equal(nxt["ood_count"].squeeze(-1), (step_in_episode + 1).clamp_max(5))
+    # the reset row carries zeros, an empty window and no alarm
+    assert (rollout["ood_window"][0] == 0).all() and not rollout["ood_alarm"][0].any()
+    assert rollout["ood_count"][0].item() == 0
 
 
-def test_env_with_a_tsidm_for_another_env_is_refused():
-    env = TransformedEnv(GymEnv("Hopper-v4"), TSymConsistencyMonitor(small_tsidm(observation_dim=17), flag=False))
+def test_env_with_a_monitor_for_another_env_is_refused():
+    other = DeploymentMonitor(tsidm=small_tsidm(observation_dim=17), flag=False)
     with pytest.raises(MonitorError, match=r"size 17.*another environment"):
-        env.observation_spec
-    env = TransformedEnv(GymEnv("Hopper-v4"), TSymConsistencyMonitor(small_tsidm(action_dim=2), flag=False))
+        TransformedEnv(GymEnv("Hopper-v4"), other).observation_spec
+    other = DeploymentMonitor(tsidm=small_tsidm(action_dim=2), flag=False)
     with pytest.raises(MonitorError, match=r"actions of size 2"):
-        env.action_spec
+        TransformedEnv(GymEnv("Hopper-v4"), other).action_spec
 
 
 def test_uncalibrated_flag_is_refused_and_flag_false_records_scores():
-    env = TransformedEnv(GymEnv("Hopper-v4"), TSymConsistencyMonitor(small_tsidm()))
+    env = TransformedEnv(GymEnv("Hopper-v4"), DeploymentMonitor(tsidm=small_tsidm()))
     with pytest.raises(MonitorError, match="not calibrated"):
-        env.reset()
+        env.rollout(3)
     with pytest.raises(MonitorError, match="not calibrated"):
-        TSymConsistencyMonitor(small_tsidm())(transitions())
-    env = TransformedEnv(GymEnv("Hopper-v4"), TSymConsistencyMonitor(small_tsidm(), flag=False))
-    check_env_specs(env)
+        DeploymentMonitor(tsidm=small_tsidm())(linear_plant(1))
+    env = TransformedEnv(GymEnv("Hopper-v4"), DeploymentMonitor(tsidm=small_tsidm(), flag=False))
     rollout = env.rollout(3)
-    assert "ood" not in rollout["next"].keys() and rollout["next", "ood_score"].shape == (3, 1)
+    assert "ood" not in rollout["next"].keys() and rollout["next", "ood_window"].shape == (3, 1)
 
 
-# ----------------------------------------------------------------- replay buffers
 @pytest.mark.parametrize("invert", [False, True])
 def test_replay_buffer_sample_and_write_time(invert):
-    monitor = calibrated()
-    data = transitions(64)
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(64), batch_size=16)
-    rb.append_transform(monitor.clone(), invert=invert)
-    rb.extend(data)
+    monitor = small_monitor()
+    data = linear_plant(2)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=16)
+    rb.append_transform(monitor, invert=invert)
+    rb.extend(data.clone())
     sample = rb.sample()
-    expected = hand_scores(monitor.tsidm, sample["observation"], sample["action"], sample["next", "observation"])
-    torch.testing.assert_close(sample["next", "ood_score"].squeeze(-1), expected["tsym_inconsistency"])
-    torch.testing.assert_close(sample["next", "ood"].squeeze(-1), expected["tsym_inconsistency"] > monitor.threshold)
+    expected = monitor.scores(sample["observation"], sample["action"], sample["next", "observation"])
+    torch.testing.assert_close(sample["next", "ood_score"].squeeze(-1), expected["ood_score"])
 
 
-# ------------------------------------------------------------------ calibration
-@pytest.mark.parametrize("quantile", [0.9, 0.99])
-def test_calibration_flags_one_minus_quantile_of_the_data(quantile):
-    monitor = TSymConsistencyMonitor(small_tsidm())
-    data = transitions(4000, seed=1)
-    threshold = monitor.calibrate(data, quantile=quantile)
-    scores = hand_scores(monitor.tsidm, data["observation"], data["action"], data["next", "observation"])
-    assert threshold == pytest.approx(torch.quantile(scores["tsym_inconsistency"].double(), quantile).item(), rel=1e-6)
-    flagged = monitor(data.clone())["next", "ood"].float().mean().item()
-    assert abs(flagged - (1 - quantile)) <= 1 / len(data) + 1e-9
-    # on fresh data from the same distribution: 1 - q within four binomial standard deviations
-    fresh = monitor(transitions(4000, seed=2))["next", "ood"].float().mean().item()
-    assert abs(fresh - (1 - quantile)) < 4 * ((1 - quantile) * quantile / 4000) ** 0.5
-    with pytest.raises(MonitorError, match=r"quantile must lie in \(0, 1\)"):
-        monitor.calibrate(data, quantile=1.0)
-
-
-def test_calibration_is_in_the_state_dict_and_clones_are_independent():
-    monitor = calibrated(quantile=0.8)
-    state = monitor.state_dict()
-    assert float(state["threshold"]) == float(monitor.threshold) and float(state["quantile"]) == 0.8
-    fresh = TSymConsistencyMonitor(small_tsidm())
-    assert not fresh.calibrated
-    fresh.load_state_dict(state)
-    assert fresh.calibrated and float(fresh.threshold) == float(monitor.threshold)
-    clone = monitor.clone()
-    clone.calibrate(transitions(512), quantile=0.5)
-    assert float(monitor.quantile) == 0.8 and float(clone.quantile) == 0.5
-
-
-# ------------------------------------------------------------------- save/load
-def test_save_load_round_trip(tmp_path):
-    monitor = calibrated(score="dynamics_residual", dim_reduction="mean")
+# ------------------------------------------------------------------- files
+def test_save_load_round_trip_with_weights_only(tmp_path):
+    monitor = small_monitor(tsidm=small_tsidm())
     monitor.save(tmp_path / "monitor.pt", metadata={"dataset": "x"})
-    loaded = TSymConsistencyMonitor.load(tmp_path / "monitor.pt", observation_dim=OBS_DIM, action_dim=ACTION_DIM)
-    assert loaded.score_key == "dynamics_residual" and loaded.dim_reduction == "mean"
-    assert float(loaded.threshold) == float(monitor.threshold) and float(loaded.quantile) == 0.9
-    assert loaded.metadata == {"dataset": "x"}
-    data = transitions()
-    torch.testing.assert_close(loaded(data.clone())["next"], monitor(data.clone())["next"], rtol=0, atol=0)
-    assert not list(tmp_path.glob(".*.tmp"))  # atomic: no temporary file left
+    torch.load(tmp_path / "monitor.pt", weights_only=True)  # a plain-tensor file
+    loaded = DeploymentMonitor.load(tmp_path / "monitor.pt", observation_dim=OBS_DIM, action_dim=ACTION_DIM)
+    data = linear_plant(2, seed=3)
+    ours, theirs = monitor(data.clone())["next"], loaded(data.clone())["next"]
+    for key in (*SCORE_TERMS, "ood_score", "ood"):
+        torch.testing.assert_close(ours[key], theirs[key], rtol=0, atol=0)
+    assert loaded.window_threshold == monitor.window_threshold and loaded.metadata["dataset"] == "x"
+    assert loaded.combine == monitor.combine and loaded.terms == monitor.terms
 
 
 def test_loading_refuses_another_tasks_monitor_and_other_files(tmp_path):
-    calibrated().save(tmp_path / "monitor.pt")
+    small_monitor(tsidm=small_tsidm()).save(tmp_path / "monitor.pt")
     with pytest.raises(CheckpointError, match="observation_dim=11.*observation_dim=17"):
-        TSymConsistencyMonitor.load(tmp_path / "monitor.pt", observation_dim=17)
+        DeploymentMonitor.load(tmp_path / "monitor.pt", observation_dim=17)
+    small_monitor().save(tmp_path / "detectors.pt")
+    with pytest.raises(CheckpointError, match="disagree on action_dim"):
+        DeploymentMonitor.load(tmp_path / "detectors.pt", action_dim=2)
     small_tsidm().save(tmp_path / "tsidm.pt")
-    with pytest.raises(CheckpointError, match="torchrl_tels.monitor/v1"):
-        TSymConsistencyMonitor.load(tmp_path / "tsidm.pt")
-    with pytest.raises(MonitorError, match="action_dim=2 was requested"):
-        TSymConsistencyMonitor(small_tsidm(), action_dim=2)
+    with pytest.raises(CheckpointError, match="torchrl_tels.monitor/v2"):
+        DeploymentMonitor.load(tmp_path / "tsidm.pt")
 
 
-# ---------------------------------------------------------------------- bad data
-def test_bad_data_is_refused_with_a_tels_error():
-    monitor = calibrated()
-    data = transitions(32)
+# ---------------------------------------------------------------------- bad input
+def test_bad_data_and_options_are_refused_with_one_error():
+    monitor = small_monitor()
+    data = linear_plant(1)[:32]
     data["next", "observation"][3, 2] = float("nan")
     data["next", "observation"][5, 0] = float("inf")
     with pytest.raises(MonitorError, match=r"next observation holds NaN or inf in 2 transition"):
         monitor(data)
-    wrong = transitions(8).exclude("action").set("action", torch.zeros(8, 2))
+    wrong = linear_plant(1)[:8].exclude("action").set("action", torch.zeros(8, 2))
     with pytest.raises(MonitorError, match=r"action has shape \(8, 2\).*size 3"):
         monitor(wrong)
     with pytest.raises(MonitorError, match=r"no 'next' entry"):
         monitor(TensorDict({"observation": torch.zeros(2, OBS_DIM), "action": torch.zeros(2, 3)}, [2]))
+    with pytest.raises(MonitorError, match="at least one detector"):
+        DeploymentMonitor()
+    with pytest.raises(MonitorError, match="score must be 'combined' or one of"):
+        DeploymentMonitor(tsidm=small_tsidm(), score="loss")
+    with pytest.raises(MonitorError, match="score must be 'combined' or one of"):
+        DeploymentMonitor(tsidm=small_tsidm(), combine=["nearest_state"])
+    with pytest.raises(MonitorError, match="disagree on observation_dim"):
+        DeploymentMonitor(tsidm=small_tsidm(), states=NearestStateDistance(torch.randn(10, 17)))
+    with pytest.raises(MonitorError, match="no 'episode' entry"):
+        monitor.calibrate(linear_plant(2).exclude("episode"))
+    bad = linear_plant(4)
+    bad["action"][7, 0] = math.nan
+    with pytest.raises(MonitorError, match="train data's action holds NaN"):
+        DeploymentMonitor.cross_fit(bad, folds=2, steps=1)
+    with pytest.raises(MonitorError, match="3 trajectories, fewer than folds=5"):
+        DeploymentMonitor.cross_fit(linear_plant(3), folds=5, steps=1)
     assert issubclass(MonitorError, TelsError) and issubclass(MonitorError, ValueError)
 
 
@@ -228,6 +343,7 @@ def test_bad_data_is_refused_with_a_tels_error():
 def test_evaluate_records_the_monitor_along_the_episodes():
     from omegaconf import OmegaConf
 
+    from torchrl_tels.data import load_dataset
     from torchrl_tels.envs import get_task, rollout_episodes
     from torchrl_tels.modules import make_guide_policy, make_tels_actor
     from torchrl_tels.trainer import evaluate
@@ -236,25 +352,29 @@ def test_evaluate_records_the_monitor_along_the_episodes():
     env = GymEnv("Hopper-v4")
     actor = make_tels_actor(tsidm, make_guide_policy(LATENT_DIM, num_cells=(16,)), env.action_spec)
     cfg = OmegaConf.create({"seed": 0, "eval": {"episodes": 2, "max_steps": 30}})
-    monitor = calibrated(tsidm, quantile=0.5)
+    monitor = small_monitor(load_dataset("hopper-medium-v2-10k")[:3000], window=7)
     stats = {"latent_step_rms": 1.0, "data_action_std": 1.0}
-    record = evaluate(cfg, actor, env, get_task("hopper-medium-v2-10k"), 7, stats, monitor=monitor)["monitor"]
-    assert "monitor" not in evaluate(cfg, actor, env, get_task("hopper-medium-v2-10k"), 7, stats)
-    # the same seeded episodes, scored here by hand
+    task = get_task("hopper-medium-v2-10k")
+    record = evaluate(cfg, actor, env, task, 7, stats, monitor=monitor)["monitor"]
+    assert "monitor" not in evaluate(cfg, actor, env, task, 7, stats)
+    # the same seeded episodes, scored here
     episodes = list(rollout_episodes(actor, env, 2, seed=7, max_steps=30))
-    expected = [hand_scores(tsidm, r["observation"], r["action"], r["next", "observation"])["tsym_inconsistency"]
+    expected = [monitor.scores(r["observation"], r["action"], r["next", "observation"])["ood_score"]
                 for r in episodes]
     assert [len(s) for s in record["scores"]] == [len(e) for e in expected]
-    for scores, hand in zip(record["scores"], expected):
+    for scores, windows, hand in zip(record["scores"], record["windows"], expected):
         torch.testing.assert_close(torch.tensor(scores), hand)
-    flagged = torch.cat(expected) > monitor.threshold
-    assert record["ood_fraction"] == pytest.approx(flagged.float().mean().item())
-    assert record["threshold"] == float(monitor.threshold) and record["quantile"] == 0.5
+        torch.testing.assert_close(torch.tensor(windows), running_mean(hand, 7).float())
+    flat = torch.cat(expected)
+    assert record["ood_fraction"] == pytest.approx((flat > monitor.threshold).float().mean().item())
+    alarms = torch.cat([running_mean(e, 7) for e in expected]) > monitor.window_threshold
+    assert record["alarm_fraction"] == pytest.approx(alarms.float().mean().item())
+    assert record["window_threshold"] == float(monitor.window_threshold) and record["quantile"] == 0.9
 
 
-# ---------------------------------------------------------- the AUROC benchmark's helpers
+# ---------------------------------------------------------- the benchmark's helpers
 def test_auroc_is_the_mann_whitney_statistic_on_a_hand_computed_case():
-    from benchmarks.monitor_auroc import auroc
+    from benchmarks.monitor_benchmark import auroc
 
     # negatives 1, 2, 3; positives 2, 4. Pairs (pos, neg): 2>1 win, 2=2 tie, 2<3 loss; 4 beats all three.
     # (1 + 0.5 + 0 + 3) / (2 * 3) = 0.75
@@ -269,12 +389,63 @@ def test_auroc_is_the_mann_whitney_statistic_on_a_hand_computed_case():
         auroc([1.0, float("nan")], [2.0])
 
 
-def test_trajectory_split_keeps_whole_trajectories():
-    from benchmarks.monitor_auroc import split_trajectories
+def test_full_windows_lie_inside_one_trajectory():
+    from benchmarks.monitor_benchmark import full_windows
 
+    scores = torch.arange(8, dtype=torch.float64)
+    trajectory = torch.tensor([0, 0, 0, 1, 1, 1, 1, 2])
+    # windows of 2: steps 1, 2 of the first trajectory, 4, 5, 6 of the second; none in the third (1 step)
+    torch.testing.assert_close(full_windows(scores, trajectory, 2), torch.tensor([0.5, 1.5, 3.5, 4.5, 5.5],
+                                                                                 dtype=torch.float64))
+
+
+def test_trajectory_split_keeps_whole_trajectories():
     episode = torch.repeat_interleave(torch.arange(20), torch.arange(1, 21))  # lengths 1..20, 210 rows
     data = TensorDict({"episode": episode, "row": torch.arange(len(episode))}, [len(episode)])
     train, held = split_trajectories(data, 0.8, seed=0)
     assert sorted(torch.cat([train["row"], held["row"]]).tolist()) == list(range(len(episode)))
     assert not set(train["episode"].tolist()) & set(held["episode"].tolist())
     assert 0.8 * len(episode) <= len(train) < 0.8 * len(episode) + 20
+
+
+# ------------------------------------------------------------------ the recipe
+@pytest.mark.parametrize("override, message", [
+    ("monitor.calibration=conformal", "monitor.calibration must be one of"),
+    ("monitor.folds=1", "monitor.folds must be an integer >= 2"),
+    ("monitor.window=0", "monitor.window must be an integer >= 1"),
+    ("monitor.quantile=1.0", r"monitor.quantile must lie in \(0, 1\)"),
+    ("monitor.num_cells=[0]", "monitor.num_cells must be a list of positive integers"),
+])
+def test_bad_monitor_config_is_one_config_error(override, message):
+    from benchmarks.step_floor import recipe_config
+    from torchrl_tels.config import validate_config
+    from torchrl_tels.errors import ConfigError
+
+    validate_config(recipe_config([]))
+    with pytest.raises(ConfigError, match=message):
+        validate_config(recipe_config([override]))
+
+
+def test_recipe_monitor_is_fitted_once_and_read_back(tmp_path, monkeypatch):
+    from benchmarks.step_floor import recipe_config
+    from torchrl_tels.trainer import check_monitor_data, make_monitor
+
+    cfg = recipe_config(["budget=smoke", "monitor.window=4"])
+    data = linear_plant(6)
+    before = torch.random.get_rng_state()
+    monitor = make_monitor(cfg, data, tmp_path)
+    assert torch.equal(torch.random.get_rng_state(), before)  # the run's RNG stream is untouched
+    assert (tmp_path / "monitor.pt").is_file() and monitor.metadata["calibration"] == "cross_fit_2"
+    assert monitor.window == 4 and monitor.dynamics.members == cfg.monitor.members
+
+    def refit(*args, **kwargs):
+        raise AssertionError("a continuation refitted the monitor")
+
+    monkeypatch.setattr(DeploymentMonitor, "cross_fit", refit)
+    again = make_monitor(cfg, data, tmp_path)
+    assert again.threshold == monitor.threshold and again.window_threshold == monitor.window_threshold
+
+    with pytest.raises(MonitorError, match="needs at least 2 trajectories, and the training data holds 1"):
+        check_monitor_data(cfg, linear_plant(1))
+    split = recipe_config(["budget=smoke", "monitor.calibration=split"])
+    assert make_monitor(split, data, tmp_path / "split").metadata["calibration"] == "split"

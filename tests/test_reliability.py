@@ -353,7 +353,8 @@ def test_cli_run_writes_only_into_run_dir(tmp_path):
     assert math.isfinite(result["final_loss"]) and math.isfinite(result["final_sum"])
     # the final evaluation's monitor record: a fraction, with the per-step scores left to the plot
     assert 0 <= results["monitor"]["ood_fraction"] <= 1 and results["monitor"]["quantile"] == 0.99
-    assert "scores" not in results["evaluations"][-1]["monitor"]
+    assert 0 <= results["monitor"]["alarm_fraction"] <= 1 and results["monitor"]["window_quantile"] == 0.999
+    assert not {"scores", "windows"} & set(results["evaluations"][-1]["monitor"])
 
 
 def test_cli_unwritable_output_folder(tmp_path):

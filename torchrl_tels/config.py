@@ -27,8 +27,9 @@ __all__ = [
 ]
 
 #: Top-level config entries that may differ between a run and its ``resume=true``
-#: continuation: they decide where and how a run is logged, not what it computes.
-RESUMABLE_KEYS = ("run_dir", "resume", "threads", "device", "logger", "checkpoint", "compile")
+#: continuation: they decide where and how a run is logged, not what it computes. The deployment
+#: monitor is fitted once and saved as monitor.pt, which a continuation reads back.
+RESUMABLE_KEYS = ("run_dir", "resume", "threads", "device", "logger", "checkpoint", "compile", "monitor")
 
 #: Options added after checkpoints were first written, as (section, key): (the value that
 #: reproduces how a checkpoint without the option behaved, when the option matters at all).
@@ -190,9 +191,29 @@ def validate_config(cfg) -> None:
         if value not in allowed:
             raise ConfigError(f"{path} must be one of {allowed}, got {value!r}.")
     _check_compile(cfg)
+    _check_monitor(cfg)
     if cfg.guide.mode == "stochastic" and _number(cfg, "guide.reach_weight") > 0:
         raise ConfigError("guide.reach_weight applies to the deterministic guide (Eq. 9) only; "
                           "guide.mode=stochastic needs guide.reach_weight=0.")
+
+
+def _check_monitor(cfg) -> None:
+    monitor = OmegaConf.select(cfg, "monitor")
+    if monitor is None:
+        raise ConfigError("the config has no 'monitor' group (the deployment monitor's settings).")
+    if monitor.calibration not in ("cross_fit", "split"):
+        raise ConfigError(f"monitor.calibration must be one of ('cross_fit', 'split'), got {monitor.calibration!r}.")
+    for key, low in (("folds", 2), ("members", 1), ("steps", 1), ("window", 1)):
+        value = monitor[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ConfigError(f"monitor.{key} must be an integer >= {low}, got {value!r}.")
+    cells = monitor.num_cells
+    if isinstance(cells, (str, bytes)) or not hasattr(cells, "__len__") or not all(
+            isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in cells):
+        raise ConfigError(f"monitor.num_cells must be a list of positive integers (layer widths), got {cells!r}.")
+    for key in ("holdout", "quantile", "window_quantile"):
+        if not 0.0 < _number(cfg, f"monitor.{key}") < 1.0:
+            raise ConfigError(f"monitor.{key} must lie in (0, 1), got {monitor[key]!r}.")
 
 
 def _check_compile(cfg) -> None:

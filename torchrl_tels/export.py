@@ -1,4 +1,4 @@
-"""A finished run as standalone ``torch.export`` programs: the Eq. (11) actor and the consistency monitor.
+"""A finished run as standalone ``torch.export`` programs: the Eq. (11) actor and the deployment monitor.
 
 The programs are traced from the library's own modules (:func:`~torchrl_tels.modules.load_tels_actor`,
 :class:`~torchrl_tels.envs.DeploymentMonitor`), so they compute exactly what those do and load
@@ -7,7 +7,8 @@ with torch alone::
     policy = torch.export.load("runs/a/export/policy.pt2").module()
     action = policy(observation)                # (B, obs_dim) float32 -> (B, action_dim)
     monitor = torch.export.load("runs/a/export/monitor.pt2").module()
-    score, ood = monitor(observation, action, next_observation)   # (B,), (B,) bool
+    recent, count = torch.zeros(B, window), torch.zeros(B, 1, dtype=torch.long)  # at each episode's start
+    score, ood, window_mean, alarm, recent, count = monitor(observation, action, next_observation, recent, count)
 
 :func:`export_run` refuses a folder that is not a finished run, or whose checkpoints do not belong
 together, before anything is written; its files appear together, or not at all.
@@ -31,7 +32,7 @@ from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.data import load_dataset
 from torchrl_tels.envs import make_eval_env, DeploymentMonitor
 from torchrl_tels.envs.monitor import SCORE_KEY
-from torchrl_tels.errors import CheckpointError
+from torchrl_tels.errors import CheckpointError, MonitorError
 from torchrl_tels.modules import load_tels_actor, TSIDM
 
 __all__ = ["MonitorProgram", "PolicyProgram", "export_run", "onnx_missing"]
@@ -59,18 +60,28 @@ class PolicyProgram(nn.Module):
 
 
 class MonitorProgram(nn.Module):
-    """(observation, action, next observation) → (``ood_score``, ``ood``) of a calibrated monitor."""
+    """One step of a calibrated deployment monitor as a tensor function.
+
+    (observation, action, next observation, ``recent``, ``count``) → (``ood_score``, ``ood``,
+    ``ood_window``, ``ood_alarm``, new ``recent``, new ``count``): the per-transition score and flag,
+    and the windowed mean and its alarm. ``recent`` (B, window) and ``count`` (B, 1, int64) carry the
+    episode's last scores from one call to the next; zeros start an episode.
+    """
 
     def __init__(self, monitor: DeploymentMonitor) -> None:
         super().__init__()
         if not monitor.calibrated:
-            raise CheckpointError("the consistency monitor is not calibrated; calibrate it before exporting.")
+            raise CheckpointError("the deployment monitor is not calibrated; calibrate it before exporting.")
         self.monitor = monitor.eval()
 
-    def forward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor):
+    def forward(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor,
+                recent: torch.Tensor, count: torch.Tensor):
         # No input checks in a traced program: they are data-dependent branches.
-        score = self.monitor.scores(observation, action, next_observation, check=False)[SCORE_KEY]
-        return score, self.monitor.is_ood(score, check=False)
+        monitor = self.monitor
+        score = monitor.scores(observation, action, next_observation, check=False)[SCORE_KEY]
+        window, recent, count = monitor.update_window(recent, count, score)
+        return (score, monitor.is_ood(score, check=False), window, window > monitor.window_threshold,
+                recent, count)
 
 
 def onnx_missing() -> str | None:
@@ -95,16 +106,40 @@ def _read_results(run_dir: Path) -> dict:
     return payload
 
 
-def _check_same_tsidm(monitor: DeploymentMonitor, tsidm: TSIDM, path: Path) -> None:
-    theirs, ours = monitor.tsidm.state_dict(), tsidm.state_dict()
-    if theirs.keys() != ours.keys() or any(not torch.equal(theirs[k], ours[k]) for k in ours):
-        raise CheckpointError(f"{path} was calibrated with another TS-IDM than the run's tsidm.pt; "
-                              "recalibrate with --calibrate DATASET.")
+def _check_same_task(monitor: DeploymentMonitor, results: dict, path: Path) -> None:
+    dataset = monitor.metadata.get("dataset")
+    if dataset is not None and results.get("dataset") is not None and dataset != results["dataset"]:
+        raise CheckpointError(f"{path} was fitted to {dataset!r}, but the run trained on {results['dataset']!r}; "
+                              "fit a monitor to the run's data with --calibrate DATASET.")
 
 
 def _export(module: nn.Module, example: tuple[torch.Tensor, ...]) -> torch.export.ExportedProgram:
     batch = torch.export.Dim("batch")
     return torch.export.export(module, example, dynamic_shapes=tuple({0: batch} for _ in example))
+
+
+def fit_monitor(dataset: str, quantile: float, run_dir: Path, observation_dim: int,
+                action_dim: int) -> DeploymentMonitor:
+    """A monitor fitted to ``dataset`` with the run's ``monitor`` settings (its ``config.yaml``), cross-fitted.
+
+    The sizes and the quantile are checked before the (minutes-long) fit."""
+    from omegaconf import OmegaConf
+
+    if not 0.0 < float(quantile) < 1.0:
+        raise MonitorError(f"--quantile must lie in (0, 1), got {quantile}.")
+    data = load_dataset(dataset)
+    for key, size in (("observation", observation_dim), ("action", action_dim)):
+        if data[key].shape[-1] != size:
+            raise MonitorError(f"{dataset}: its {key}s have size {data[key].shape[-1]}, but the run's environment's "
+                               f"have size {size}: it is another task's data.")
+    config = run_dir / "config.yaml"
+    settings = OmegaConf.select(OmegaConf.load(config), "monitor") if config.is_file() else None
+    options = {} if settings is None else {
+        "folds": settings.folds, "members": settings.members, "num_cells": tuple(settings.num_cells),
+        "steps": settings.steps, "window": settings.window, "window_quantile": settings.window_quantile}
+    monitor = DeploymentMonitor.cross_fit(data, quantile=quantile, **options)
+    monitor.metadata["dataset"] = str(dataset)
+    return monitor
 
 
 def export_run(
@@ -119,8 +154,8 @@ def export_run(
     """Writes ``policy.pt2`` (and ``monitor.pt2``, ``export.json``, ONNX files) of a finished run into ``out``.
 
     ``out`` defaults to ``run_dir/export``. The monitor is exported when ``run_dir/monitor.pt`` holds a
-    calibrated one made from the run's TS-IDM, or when ``calibrate`` names a dataset to calibrate it on at
-    ``quantile`` (its ``monitor.pt`` then goes into ``out``). With ``onnx``, ``policy.onnx``/``monitor.onnx``
+    calibrated one fitted to the run's dataset, or when ``calibrate`` names a dataset to fit one to
+    (cross-fitted, flagging at ``quantile``; its ``monitor.pt`` then goes into ``out``). With ``onnx``, ``policy.onnx``/``monitor.onnx``
     are written too when the exporter's packages are installed (else ``log`` says so).
 
     Everything is checked and traced before ``out`` is touched; the files are written into a hidden
@@ -144,13 +179,12 @@ def export_run(
 
     monitor, monitor_source = None, None
     if calibrate is not None:
-        monitor = DeploymentMonitor(tsidm)
-        monitor.calibrate(load_dataset(calibrate), quantile=quantile)
+        monitor = fit_monitor(calibrate, quantile, run_dir, observation_dim, action_dim)
         monitor_source = str(calibrate)
     elif (run_dir / "monitor.pt").is_file():
         monitor = DeploymentMonitor.load(run_dir / "monitor.pt", observation_dim=observation_dim,
-                                              action_dim=action_dim)
-        _check_same_tsidm(monitor, tsidm, run_dir / "monitor.pt")
+                                         action_dim=action_dim)
+        _check_same_task(monitor, results, run_dir / "monitor.pt")
         monitor_source = "monitor.pt"
     else:
         log(f"no calibrated monitor in {run_dir} (monitor.pt) and no --calibrate DATASET: exporting the policy only")
@@ -160,7 +194,9 @@ def export_run(
     if monitor is not None:
         action = torch.zeros(2, action_dim)
         # distinct tensors: an input passed twice would be traced as one
-        programs[MONITOR_FILE] = _export(MonitorProgram(monitor), (observation, action, observation.clone()))
+        recent, count = torch.zeros(2, monitor.window), torch.zeros(2, 1, dtype=torch.long)
+        programs[MONITOR_FILE] = _export(MonitorProgram(monitor),
+                                         (observation, action, observation.clone(), recent, count))
     want_onnx = onnx and (reason := onnx_missing()) is None
     if onnx and not want_onnx:
         log(f"--onnx: {reason}; skipping the ONNX files (pip install onnx onnxscript)")
@@ -173,11 +209,15 @@ def export_run(
         "action_low": low.tolist(),
         "action_high": high.tolist(),
         "inputs": {"policy": "observation (B, observation_dim) float32 -> action (B, action_dim)",
-                   "monitor": "observation, action, next_observation (B, .) float32 -> ood_score (B,), ood (B,) bool"},
+                   "monitor": "observation, action, next_observation (B, .) float32, recent (B, window) float32, "
+                              "count (B, 1) int64 (zeros at an episode's start) -> ood_score (B,), ood (B,) bool, "
+                              "ood_window (B,), ood_alarm (B,) bool, recent, count"},
         "sources": {name: file_sha256(run_dir / name) for name in ("tsidm.pt", "policy.pt")},
         "monitor": None if monitor is None else {
-            "score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile),
-            "calibrated_from": monitor_source},
+            "score": monitor.score_key, "combine": list(monitor.combine), "threshold": float(monitor.threshold),
+            "quantile": float(monitor.quantile), "window": monitor.window,
+            "window_threshold": float(monitor.window_threshold), "window_quantile": float(monitor.window_quantile),
+            "calibration": monitor.metadata.get("calibration"), "calibrated_from": monitor_source},
         "torch": torch.__version__,
     }
 

@@ -114,9 +114,9 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
     evaluations. ``diagnostics`` holds what shows whether T-symmetry did
     anything: the latent scale, the guide's T-symmetry share and proposed step,
     and the action error split between TS-IDM and guide, as the caller measured them.
-    ``monitor`` holds the consistency monitor's record of the final evaluation
-    (fraction of flagged steps, threshold); its per-step scores are plotted in
-    ``monitor_scores.png`` rather than stored.
+    ``monitor`` holds the deployment monitor's record of the final evaluation
+    (fractions of flagged and alarmed steps, thresholds); its windowed score along
+    each episode is plotted in ``monitor_scores.png`` rather than stored.
     """
     import torch
 
@@ -128,7 +128,8 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
     final = torch.tensor([e["score"] for e in last])
     n_candidates = len(run.beta_results or [None])
     monitor = evaluations[-1].get("monitor") if evaluations else None
-    monitor_summary = None if monitor is None else {k: v for k, v in monitor.items() if k != "scores"}
+    monitor_summary = None if monitor is None else {k: v for k, v in monitor.items()
+                                                   if k not in ("scores", "windows")}
     evaluations = [{**e, "monitor": monitor_summary} if "monitor" in e else e for e in evaluations]
     results = {
         "dataset": str(cfg.dataset.name),
@@ -167,12 +168,15 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
                 run_dir / "policy_losses.png", title="latent value and guide losses; T-symmetry share", logy=True)
     plot_curves({"score": [(e["step"], e["score"]) for e in evaluations]}, run_dir / "eval_scores.png",
                 title=f"TELS on {cfg.dataset.name}", ylabel=results["score_kind"])
-    if monitor is not None and monitor.get("scores"):
-        longest = max(len(scores) for scores in monitor["scores"])
-        series = {f"episode {i}": list(enumerate(scores, 1)) for i, scores in enumerate(monitor["scores"])}
-        series[f"threshold (q={monitor['quantile']:g})"] = [(1, monitor["threshold"]), (longest, monitor["threshold"])]
-        plot_curves(series, run_dir / "monitor_scores.png", xlabel="env step", ylabel=monitor["score"], logy=True,
-                    title=f"consistency monitor, final evaluation: {monitor['ood_fraction']:.1%} of steps flagged")
+    if monitor is not None and monitor.get("windows"):
+        longest = max(len(window) for window in monitor["windows"])
+        series = {f"episode {i}": list(enumerate(window, 1)) for i, window in enumerate(monitor["windows"])}
+        threshold = monitor["window_threshold"]
+        series[f"alarm threshold (q={monitor['window_quantile']:g})"] = [(1, threshold), (longest, threshold)]
+        plot_curves(series, run_dir / "monitor_scores.png", xlabel="env step",
+                    ylabel=f"mean {monitor['score']} ood_score over {monitor['window']} steps",
+                    title=f"deployment monitor, final evaluation: {monitor['ood_fraction']:.1%} of steps flagged, "
+                          f"{monitor['alarm_fraction']:.1%} alarmed")
     print(f"final score {results['final_normalized_score_mean']:.1f} ± {results['final_normalized_score_std']:.1f} "
           f"(mean of last {len(last)} evaluations; {results['score_kind']}); outputs in {run_dir}")
     return results

@@ -10,8 +10,9 @@ here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
 * :func:`make_stage1` / :func:`fit_tsidm`: the TS-IDM and Eq. (7);
 * :func:`make_stage2`: the latent value (Eq. 8), the guide (Eq. 9/10), their
   optimizers and the actor of Eq. (11);
+* :func:`make_monitor`: the deployment monitor of the run's data, fitted once and saved;
 * :func:`evaluate`: deterministic episodes with the diagnostics of a frozen policy and,
-  when given the calibrated consistency monitor, its score along the episodes.
+  when given the deployment monitor, its scores and alarms along the episodes.
 """
 from __future__ import annotations
 
@@ -32,12 +33,14 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
 from torchrl_tels.config import check_same_run, resolve_device, resolve_precision, training_config
-from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
+from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
+                               subset_dataset, trajectory_ids)
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
-from torchrl_tels.envs import (get_task, normalized_score, rollout_episodes, Task, TSIDMEncoderTransform,
-                               DeploymentMonitor)
+from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, rollout_episodes, Task,
+                               TSIDMEncoderTransform)
 from torchrl_tels.envs.evaluation import eval_env_spaces
+from torchrl_tels.envs.monitor import running_mean
 from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
@@ -71,8 +74,6 @@ TSIDM_TERMS = ("ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_su
 # App. B.5 picks beta by "the lowest TS-IDM training loss": "unweighted" compares the four terms'
 # sum (ell_sum), "weighted" Eq. (7) itself (ell_total), which scales three terms by the candidate.
 SELECTION_KEYS = {"unweighted": "final_sum", "weighted": "final_loss"}
-#: The consistency monitor flags the transitions above this quantile of the training data's scores.
-MONITOR_QUANTILE = 0.99
 
 
 def run_precision(cfg):
@@ -517,7 +518,6 @@ class Stage2:
     guide: Any
     actor_options: dict
     latent_stats: dict
-    monitor: DeploymentMonitor
     device: torch.device = torch.device("cpu")
     amp: Callable = contextlib.nullcontext  # the loss forward passes' precision (precision_context)
     compile: dict = field(default_factory=dict)  # compile_update's switches (compile_options)
@@ -633,8 +633,6 @@ class StackedStage2:
 
 def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     """Freezes the TS-IDM, encodes the data once (Algorithm 1, line 6) and builds V, π_g and the actor.
-
-    Also calibrates the T-symmetry consistency monitor on the training data (:data:`MONITOR_QUANTILE`).
     """
     device = resolve_device(cfg.device)
     tsidm.to(device).eval()
@@ -647,8 +645,6 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     latent_stats = latent_statistics(tsidm, data["observation"], data["next", "observation"])
     latent_stats["data_action_std"] = data["action"].std(0).mean().item()
     print(f"latent scale: RMS spread {latent_stats['latent_rms']:.4g}, RMS step {latent_stats['latent_step_rms']:.4g}")
-    monitor = DeploymentMonitor(tsidm)
-    monitor.calibrate(data, quantile=MONITOR_QUANTILE)
     torch.manual_seed(cfg.seed + 1000)  # the same networks whether stage 1 ran here or before a resume
     value_net = make_latent_value(latent_dim, cfg.value.num_cells).to(device)
     guide = make_guide_policy(latent_dim, cfg.guide.mode, cfg.guide.num_cells).to(device)
@@ -676,11 +672,50 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
         guide=guide,
         actor_options=actor_options,
         latent_stats=latent_stats,
-        monitor=monitor,
         device=device,
         amp=run_precision(cfg),
         compile=compiled,
     )
+
+
+def check_monitor_data(cfg, data: TensorDictBase) -> None:
+    """Refuses, before anything is written, data with too few trajectories for ``cfg.monitor``'s calibration."""
+    count = int(trajectory_ids(data)[-1]) + 1
+    need = cfg.monitor.folds if cfg.monitor.calibration == "cross_fit" else 2
+    if count < need:
+        raise MonitorError(f"the deployment monitor's {cfg.monitor.calibration} calibration needs at least {need} "
+                           f"trajectories, and the training data holds {count}; lower monitor.folds or use "
+                           "monitor.calibration=split.")
+
+
+def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
+    """The run's deployment monitor: read from ``run_dir/monitor.pt`` when a previous attempt wrote it,
+    else fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split calibration) and saved there.
+
+    Its detectors are a one-step dynamics ensemble and the nearest data state, combined into the
+    default ``ood_score``; the TS-IDM's terms are not included, since the TS-IDM was trained on every
+    trajectory and so leaves none to calibrate them on (``DeploymentMonitor.fit`` adds them for a
+    TS-IDM trained on a split). A continuation must not refit it: the fit draws from the global RNG.
+    """
+    path = run_dir / "monitor.pt"
+    if path.is_file():
+        return DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
+                                      action_dim=data["action"].shape[-1])
+    m = cfg.monitor
+    options = {"members": m.members, "num_cells": tuple(m.num_cells), "steps": m.steps, "quantile": m.quantile,
+               "window_quantile": m.window_quantile, "seed": cfg.seed, "window": m.window}
+    data = data.cpu()
+    clock = time.perf_counter()
+    with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
+        if m.calibration == "cross_fit":
+            monitor = DeploymentMonitor.cross_fit(data, folds=m.folds, **options)
+        else:
+            train, calibration = split_trajectories(data, 1.0 - float(m.holdout), cfg.seed)
+            monitor = DeploymentMonitor.fit(train, calibration, **options)
+    print(f"deployment monitor: {m.calibration} calibration, threshold {float(monitor.threshold):.3g}, "
+          f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)")
+    monitor.save(path, metadata={"dataset": str(cfg.dataset.name)})
+    return monitor
 
 
 def score(task: Task, episode_return: float) -> float:
@@ -730,16 +765,21 @@ def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:
 
 
 def _monitor_record(monitor: DeploymentMonitor, rollouts: list) -> dict:
-    """The monitor's score along each episode and the fraction of flagged steps; a monitor error
-    (a non-finite state) is recorded, not raised, so it never costs the finished training."""
-    record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile)}
+    """The monitor along each episode: its score and windowed mean at every step, the fraction of flagged
+    steps and of alarmed steps. A monitor error (a non-finite state) is recorded, not raised, so it never
+    costs the finished training."""
+    record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile),
+              "window": monitor.window, "window_threshold": float(monitor.window_threshold),
+              "window_quantile": float(monitor.window_quantile)}
     try:
         device = monitor.threshold.device
-        nexts = [monitor(rollout.to(device))["next"].cpu() for rollout in rollouts]
+        scores = [monitor(rollout.to(device))["next", "ood_score"].reshape(-1).cpu() for rollout in rollouts]
     except MonitorError as err:
         return {**record, "error": str(err)}
-    flags = torch.cat([n["ood"].reshape(-1) for n in nexts])
-    return {**record, "ood_fraction": flags.float().mean().item(),
-            "scores": [n["ood_score"].reshape(-1).tolist() for n in nexts]}
+    windows = [running_mean(score, monitor.window).float() for score in scores]
+    flat, flat_windows = torch.cat(scores), torch.cat(windows)
+    return {**record, "ood_fraction": (flat > monitor.threshold).float().mean().item(),
+            "alarm_fraction": (flat_windows > monitor.window_threshold).float().mean().item(),
+            "scores": [score.tolist() for score in scores], "windows": [window.tolist() for window in windows]}
 
 
