@@ -43,8 +43,9 @@ class NonFiniteLossError(TelsError, FloatingPointError):
 
 
 class MonitorError(TelsError, ValueError):
-    """The consistency monitor was misused or fed bad data: a flag asked of an uncalibrated
-    monitor, a TS-IDM whose sizes differ from the env's or the data's, a non-finite input."""
+    """The deployment monitor was misused or fed bad data: a flag asked of an uncalibrated
+    monitor, detectors whose sizes differ from the env's, the data's or each other's, a non-finite
+    input, too few trajectories to calibrate on."""
 
 
 class OutKeysError(TelsError, ValueError, RuntimeError):

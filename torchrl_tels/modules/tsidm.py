@@ -289,7 +289,7 @@ class TSIDM(nn.Module):
     def checkpoint_payload(self, metadata: dict[str, Any] | None = None) -> dict[str, Any]:
         """What :meth:`save` writes: format, config, weights (with the normalization) and ``metadata``.
 
-        Other checkpoints that carry a TS-IDM (the consistency monitor's) embed this dict.
+        Other checkpoints that carry a TS-IDM (the deployment monitor's) embed this dict.
         """
         return {
             "format": self.CHECKPOINT_FORMAT,
