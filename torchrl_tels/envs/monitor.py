@@ -194,7 +194,7 @@ class DeploymentMonitor(Transform):
         self._observation_dim = next(iter(sizes["observation_dim"].values()))
         self._action_dim = next(iter(sizes["action_dim"].values()), None if action_dim is None else int(action_dim))
 
-        terms = (TSIDM_TERMS if tsidm is not None else ()) + ((MODEL_KEY, DISAGREEMENT_KEY) if dynamics else ()) \
+        terms = (TSIDM_TERMS if tsidm is not None else ()) + ((MODEL_KEY, DISAGREEMENT_KEY) if dynamics is not None else ()) \
             + ((NEAREST_KEY,) if states is not None else ())
         if combine is None:
             combine = tuple(t for t in DEFAULT_COMBINATION if t in terms) or terms
