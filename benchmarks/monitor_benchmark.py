@@ -316,7 +316,7 @@ def run(args) -> dict:
     start = time.perf_counter()
     tsidm, tsidm_final = fit_tsidm_on(fit_part, setting["domain"], args.seed, args.tsidm_steps)
     clock["tsidm_s"] = time.perf_counter() - start
-    options = {"steps": args.ensemble_steps, "seed": args.seed, "window": args.window}
+    options = {"steps": args.ensemble_steps, "seed": args.seed, "window": args.window, "precision": args.precision}
     start = time.perf_counter()
     monitors = {"split": DeploymentMonitor.fit(fit_part, cal_part, tsidm=tsidm, **options)}
     clock["split_s"] = time.perf_counter() - start
@@ -403,7 +403,7 @@ def run(args) -> dict:
                          "test": int(test_traj[-1]) + 1},
         "tsidm_steps": args.tsidm_steps,
         "tsidm_final_loss": tsidm_final,
-        "ensemble": {"members": 5, "steps": args.ensemble_steps, "folds": args.folds},
+        "ensemble": {"members": 5, "steps": args.ensemble_steps, "folds": args.folds, "precision": args.precision},
         "window": args.window,
         "nominal": {"flag_rate": 0.01, "window_alarm_steps_per_1000": 1.0},
         "calibration": calibration,
@@ -432,7 +432,7 @@ def run_far(args) -> dict:
     order = torch.randperm(count, generator=torch.Generator().manual_seed(args.seed))
     fold_of = torch.empty(count, dtype=torch.long)
     fold_of[order] = torch.arange(count) % args.outer_folds
-    options = {"steps": args.ensemble_steps, "seed": args.seed, "window": args.window}
+    options = {"steps": args.ensemble_steps, "seed": args.seed, "window": args.window, "precision": args.precision}
     folds = []
     for k in range(args.outer_folds):
         held = fold_of[trajectory] == k
@@ -457,7 +457,8 @@ def run_far(args) -> dict:
                           for key in ("flag_rate", "window_alarm_steps_per_1000", "window_alarm_onsets_per_1000")}
     return {"command": invocation(), "setting": args.setting, "dataset": dataset, "seed": args.seed,
             "trajectories": count, "outer_folds": args.outer_folds,
-            "ensemble": {"members": 5, "steps": args.ensemble_steps, "folds": args.folds}, "window": args.window,
+            "ensemble": {"members": 5, "steps": args.ensemble_steps, "folds": args.folds, "precision": args.precision},
+            "window": args.window,
             "nominal": {"flag_rate": 0.01, "window_alarm_steps_per_1000": 1.0},
             "pooled": pooled, "folds": folds, "threads": args.threads, "machine": machine_description()}
 
@@ -635,6 +636,7 @@ def parse_args(argv=None):
     r.add_argument("--tsidm-steps", type=int, default=3000, help="TS-IDM steps (the study budget: 3000)")
     r.add_argument("--ensemble-steps", type=int, default=3000, help="steps of the dynamics ensemble")
     r.add_argument("--folds", type=int, default=5, help="folds of the cross-fitted calibration")
+    r.add_argument("--precision", choices=("fp32", "bf16"), default="fp32", help="the ensemble's training")
     r.add_argument("--window", type=int, default=100, help="the monitors' window (steps)")
     r.add_argument("--windows", type=int, nargs="+", default=[1, 10, 50, 100, 200], help="window AUROC lengths")
     r.add_argument("--replay", type=int, default=2000, help="test states replayed per shifted set")
@@ -651,6 +653,7 @@ def parse_args(argv=None):
     f.add_argument("--outer-folds", type=int, default=5)
     f.add_argument("--folds", type=int, default=5, help="folds of the cross-fitted calibration")
     f.add_argument("--ensemble-steps", type=int, default=3000)
+    f.add_argument("--precision", choices=("fp32", "bf16"), default="fp32", help="the ensemble's training")
     f.add_argument("--window", type=int, default=100)
     f.add_argument("--threads", type=int, default=1)
     f.add_argument("--out", type=Path, default=RESULTS)

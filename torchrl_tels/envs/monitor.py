@@ -379,28 +379,29 @@ class DeploymentMonitor(Transform):
 
     @staticmethod
     def fit_detectors(data: TensorDictBase, *, members: int = 5, num_cells: Sequence[int] = (200, 200),
-                      steps: int = 3000, max_states: int = 20000,
-                      seed: int = 0) -> tuple[DynamicsEnsemble, NearestStateDistance]:
-        """A :class:`DynamicsEnsemble` and a :class:`NearestStateDistance` fitted to ``data``'s transitions."""
+                      steps: int = 3000, max_states: int = 20000, seed: int = 0,
+                      precision: str = "fp32") -> tuple[DynamicsEnsemble, NearestStateDistance]:
+        """A :class:`DynamicsEnsemble` (trained in ``precision``) and a :class:`NearestStateDistance` fitted to
+        ``data``'s transitions."""
         observation, action, next_observation = DeploymentMonitor._transitions(data, "train", "fit_detectors")
         torch.manual_seed(seed)
         dynamics = DynamicsEnsemble(observation.shape[-1], action.shape[-1], members=members,
                                     num_cells=tuple(num_cells))
-        dynamics.fit(observation, action, next_observation, steps=steps, seed=seed)
+        dynamics.fit(observation, action, next_observation, steps=steps, seed=seed, precision=precision)
         states = NearestStateDistance(torch.cat([observation, next_observation]), max_states=max_states, seed=seed)
         return dynamics, states
 
     @classmethod
     def fit(cls, train: TensorDictBase, calibration: TensorDictBase, *, tsidm: TSIDM | None = None,
             members: int = 5, num_cells: Sequence[int] = (200, 200), steps: int = 3000, max_states: int = 20000,
-            quantile: float = 0.99, window_quantile: float = 0.999, seed: int = 0,
+            quantile: float = 0.99, window_quantile: float = 0.999, seed: int = 0, precision: str = "fp32",
             **kwargs) -> "DeploymentMonitor":
         """Split calibration: fits the detectors (:meth:`fit_detectors`) to ``train`` and calibrates on
         ``calibration``, held-out trajectories. ``tsidm`` adds the T-symmetry terms; its own training data
         must exclude ``calibration`` too. ``kwargs`` go to the constructor."""
         cls._transitions(calibration, "calibration", f"{cls.__name__}.fit")
         dynamics, states = cls.fit_detectors(train, members=members, num_cells=num_cells, steps=steps,
-                                             max_states=max_states, seed=seed)
+                                             max_states=max_states, seed=seed, precision=precision)
         monitor = cls(tsidm=tsidm, dynamics=dynamics, states=states, **kwargs)
         monitor.calibrate(calibration, quantile=quantile, window_quantile=window_quantile)
         monitor.metadata = {"calibration": "split", "train_transitions": int(train.numel()),
@@ -410,7 +411,7 @@ class DeploymentMonitor(Transform):
     @classmethod
     def cross_fit(cls, data: TensorDictBase, *, folds: int = 5, members: int = 5,
                   num_cells: Sequence[int] = (200, 200), steps: int = 3000, max_states: int = 20000,
-                  quantile: float = 0.99, window_quantile: float = 0.999, seed: int = 0,
+                  quantile: float = 0.99, window_quantile: float = 0.999, seed: int = 0, precision: str = "fp32",
                   **kwargs) -> "DeploymentMonitor":
         """Cross-fitted calibration: every trajectory of ``data`` calibrates, scored by detectors that never saw it.
 
@@ -436,7 +437,8 @@ class DeploymentMonitor(Transform):
         fold_of = torch.empty(count, dtype=torch.long)
         fold_of[order] = torch.arange(count) % folds
         fold = fold_of[trajectory]
-        options = {"members": members, "num_cells": num_cells, "steps": steps, "max_states": max_states}
+        options = {"members": members, "num_cells": num_cells, "steps": steps, "max_states": max_states,
+                   "precision": precision}
         raw = {}
         for k in range(int(folds)):
             held = fold == k

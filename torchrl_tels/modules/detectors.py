@@ -81,9 +81,15 @@ class DynamicsEnsemble(nn.Module):
         return residual, disagreement
 
     def fit(self, observation: torch.Tensor, action: torch.Tensor, next_observation: torch.Tensor, *,
-            steps: int = 3000, batch_size: int = 256, lr: float = 1e-3, seed: int = 0) -> list[float]:
+            steps: int = 3000, batch_size: int = 256, lr: float = 1e-3, seed: int = 0,
+            precision: str = "fp32") -> list[float]:
         """Sets the normalizations from the data, then trains every member on its own random batches
-        (Adam, mean squared error of the normalized step). Returns the loss every 100 steps."""
+        (Adam, mean squared error of the normalized step). Returns the loss every 100 steps.
+
+        ``precision="bf16"`` runs the forward passes under bf16 autocast (the weights and the scores stay fp32)."""
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"DynamicsEnsemble.fit: precision must be 'fp32' or 'bf16', got {precision!r}.")
+        autocast = torch.autocast(observation.device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
         observation, next_observation = observation.float(), next_observation.float()
         action = action.float()
         self.obs_loc, self.obs_scale = _normalization(observation)
@@ -96,7 +102,9 @@ class DynamicsEnsemble(nn.Module):
         for step in range(int(steps)):
             index = torch.randint(n, (self.members, batch_size), generator=generator, device=observation.device)
             s, a = observation[index], action[index]
-            loss = (self._members_forward(s, a) - target[index]).pow(2).sum(-1).mean()
+            with autocast:
+                prediction = self._members_forward(s, a)
+            loss = (prediction.float() - target[index]).pow(2).sum(-1).mean()
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
