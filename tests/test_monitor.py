@@ -198,6 +198,15 @@ def test_held_out_calibration_holds_on_new_trajectories_where_in_sample_over_ala
     assert over > 0.2, over  # the detectors score their own training data low: the old calibration's fault
 
 
+def test_ensemble_in_bf16_learns_the_plant_too():
+    data = linear_plant(20)
+    ensemble = DynamicsEnsemble(OBS_DIM, ACTION_DIM, members=3, num_cells=(64, 64))
+    history = ensemble.fit(data["observation"], data["action"], data["next", "observation"], steps=600, seed=0,
+                           precision="bf16")
+    assert history[-1] < 0.2 * history[0]
+    assert all(p.dtype == torch.float32 for p in ensemble.parameters())
+
+
 def test_ensemble_learns_the_plant_and_a_changed_plant_scores_higher():
     from benchmarks.monitor_benchmark import auroc
 
@@ -210,6 +219,8 @@ def test_ensemble_learns_the_plant_and_a_changed_plant_scores_higher():
         same_r, _ = ensemble.scores(same["observation"], same["action"], same["next", "observation"])
         changed_r, _ = ensemble.scores(changed["observation"], changed["action"], changed["next", "observation"])
     assert auroc(same_r.numpy(), changed_r.numpy()) > 0.9
+    with pytest.raises(ValueError, match="precision must be 'fp32' or 'bf16'"):
+        ensemble.fit(data["observation"], data["action"], data["next", "observation"], steps=1, precision="fp16")
     # over windows of 20 steps the change is plainer still
     trajectory = same["episode"]
     assert auroc(running_mean(same_r, 20, trajectory).numpy()[19::20],
