@@ -437,7 +437,7 @@ def test_bad_monitor_config_is_one_config_error(override, message):
         validate_config(recipe_config([override]))
 
 
-def test_recipe_monitor_is_fitted_once_and_read_back(tmp_path, monkeypatch):
+def test_recipe_monitor_is_fitted_once_and_read_back_on_resume(tmp_path, monkeypatch):
     from benchmarks.step_floor import recipe_config
     from torchrl_tels.trainer import check_monitor_data, make_monitor
 
@@ -448,15 +448,47 @@ def test_recipe_monitor_is_fitted_once_and_read_back(tmp_path, monkeypatch):
     assert torch.equal(torch.random.get_rng_state(), before)  # the run's RNG stream is untouched
     assert (tmp_path / "monitor.pt").is_file() and monitor.metadata["calibration"] == "cross_fit_2"
     assert monitor.window == 4 and monitor.dynamics.members == cfg.monitor.members
+    real_cross_fit = DeploymentMonitor.cross_fit
+    calls = []
+    monkeypatch.setattr(DeploymentMonitor, "cross_fit",
+                        classmethod(lambda cls, *a, **k: calls.append(1) or real_cross_fit(*a, **k)))
 
-    def refit(*args, **kwargs):
-        raise AssertionError("a continuation refitted the monitor")
-
-    monkeypatch.setattr(DeploymentMonitor, "cross_fit", refit)
-    again = make_monitor(cfg, data, tmp_path)
-    assert again.threshold == monitor.threshold and again.window_threshold == monitor.window_threshold
+    again = make_monitor(recipe_config(["budget=smoke", "monitor.window=4", "resume=true"]), data, tmp_path)
+    assert not calls and again.threshold == monitor.threshold and again.window_threshold == monitor.window_threshold
+    make_monitor(recipe_config(["budget=smoke", "monitor.window=5", "resume=true"]), data, tmp_path)
+    assert len(calls) == 1  # other monitor settings: refitted
+    make_monitor(recipe_config(["budget=smoke", "monitor.window=5", "seed=3"]), data, tmp_path)
+    assert len(calls) == 2  # a fresh run in a used folder: refitted, never the old file
 
     with pytest.raises(MonitorError, match="needs at least 2 trajectories, and the training data holds 1"):
         check_monitor_data(cfg, linear_plant(1))
     split = recipe_config(["budget=smoke", "monitor.calibration=split"])
     assert make_monitor(split, data, tmp_path / "split").metadata["calibration"] == "split"
+
+
+def test_bad_options_are_refused_before_any_fit(tmp_path, monkeypatch):
+    with pytest.raises(MonitorError, match=r"quantile must lie in \(0, 1\)"):
+        conformal_threshold(torch.arange(5.0), 0.0)
+    monitor = small_monitor()
+    monitor.save(tmp_path / "monitor.pt")
+    with pytest.raises(MonitorError, match=r"\['window'\] are part of the saved monitor"):
+        DeploymentMonitor.load(tmp_path / "monitor.pt", window=7)
+    payload = torch.load(tmp_path / "monitor.pt", weights_only=True)
+    del payload["calibration"]["term_scale"]
+    torch.save(payload, tmp_path / "damaged.pt")
+    with pytest.raises(CheckpointError, match="damaged.*term_scale"):
+        DeploymentMonitor.load(tmp_path / "damaged.pt")
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("fitted before the options were checked")
+
+    monkeypatch.setattr(DeploymentMonitor, "fit_detectors", staticmethod(no_fit))
+    data = linear_plant(4)
+    with pytest.raises(MonitorError, match=r"window_quantile must lie in \(0, 1\)"):
+        DeploymentMonitor.cross_fit(data, folds=2, window_quantile=1.0)
+    with pytest.raises(MonitorError, match="window must be at least 1"):
+        DeploymentMonitor.fit(data, data, window=0)
+    with pytest.raises(MonitorError, match="no 'episode' entry"):
+        DeploymentMonitor.fit(data, data.exclude("episode"))
+    with pytest.raises(MonitorError, match="cannot refit a TS-IDM"):
+        DeploymentMonitor.cross_fit(data, folds=2, tsidm=small_tsidm())

@@ -689,18 +689,23 @@ def check_monitor_data(cfg, data: TensorDictBase) -> None:
 
 
 def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
-    """The run's deployment monitor: read from ``run_dir/monitor.pt`` when a previous attempt wrote it,
-    else fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split calibration) and saved there.
+    """The run's deployment monitor, fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split
+    calibration) and saved as ``run_dir/monitor.pt``; a continuation (``resume=true``) reads that file back
+    when it was fitted to the same dataset, seed and ``monitor`` settings, and refits it otherwise.
 
     Its detectors are a one-step dynamics ensemble and the nearest data state, combined into the
-    default ``ood_score``; the TS-IDM's terms are not included, since the TS-IDM was trained on every
+    default ``ood_score``. The TS-IDM's terms are not included: the run's TS-IDM is trained on every
     trajectory and so leaves none to calibrate them on (``DeploymentMonitor.fit`` adds them for a
-    TS-IDM trained on a split). A continuation must not refit it: the fit draws from the global RNG.
+    TS-IDM trained on a split).
     """
     path = run_dir / "monitor.pt"
-    if path.is_file():
-        return DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
-                                      action_dim=data["action"].shape[-1])
+    fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed),
+                  "monitor": OmegaConf.to_container(cfg.monitor, resolve=True)}
+    if cfg.resume and path.is_file():
+        monitor = DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
+                                         action_dim=data["action"].shape[-1])
+        if all(monitor.metadata.get(key) == value for key, value in fitted_for.items()):
+            return monitor
     m = cfg.monitor
     options = {"members": m.members, "num_cells": tuple(m.num_cells), "steps": m.steps, "quantile": m.quantile,
                "window_quantile": m.window_quantile, "seed": cfg.seed, "window": m.window}
@@ -714,7 +719,7 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
             monitor = DeploymentMonitor.fit(train, calibration, **options)
     print(f"deployment monitor: {m.calibration} calibration, threshold {float(monitor.threshold):.3g}, "
           f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)")
-    monitor.save(path, metadata={"dataset": str(cfg.dataset.name)})
+    monitor.save(path, metadata=fitted_for)
     return monitor
 
 

@@ -122,7 +122,7 @@ def trajectory_ids(data: TensorDictBase) -> torch.Tensor:
     if "episode" not in data.keys():
         raise DatasetError("the data has no 'episode' entry, so its trajectories cannot be told apart.")
     episode = data.get("episode").reshape(-1)
-    start = torch.ones(len(episode), dtype=torch.bool)
+    start = torch.ones(len(episode), dtype=torch.bool, device=episode.device)
     start[1:] = episode[1:] != episode[:-1]
     return start.cumsum(0) - 1
 
@@ -141,11 +141,12 @@ def split_trajectories(data: TensorDictBase, fraction: float, seed: int) -> tupl
     count = int(run_id[-1]) + 1 if len(run_id) else 0
     if count < 2:
         raise DatasetError(f"split_trajectories needs at least two trajectories, the data holds {count}.")
+    run_id = run_id.cpu()
     order = torch.randperm(count, generator=_generator(seed))
     lengths = torch.bincount(run_id, minlength=count)[order]
     taken = int(torch.searchsorted(lengths.cumsum(0), fraction * len(run_id))) + 1
     kept = order[: min(taken, count - 1)]
-    mask = torch.isin(run_id, kept)
+    mask = torch.isin(run_id, kept).to(data.device) if data.device is not None else torch.isin(run_id, kept)
     return data[mask], data[~mask]
 
 

@@ -43,13 +43,23 @@ COUNT_KEY = "ood_count"
 _TINY = 1e-12  # keeps log() finite at a score of exactly 0
 
 
+def _check_quantiles(name: str, quantile: float, window_quantile: float) -> None:
+    for label, q in (("quantile", quantile), ("window_quantile", window_quantile)):
+        if not 0.0 < float(q) < 1.0:
+            raise MonitorError(f"{name}: {label} must lie in (0, 1), got {q}.")
+
+
 def conformal_threshold(scores: torch.Tensor, quantile: float) -> float:
     r"""The split-conformal threshold: the :math:`\lceil (n+1) q \rceil`-th smallest of ``n`` calibration scores.
 
     A new score exchangeable with the calibration scores exceeds it with probability at most
     :math:`1 - q` (and at least :math:`1 - q - 1/(n+1)` without ties). When :math:`(n+1)q > n` no
-    calibration score is high enough, and the largest is returned.
+    calibration score is high enough for that bound, and the largest is returned. Transitions of one
+    trajectory are not exchangeable with each other, so for a monitor the bound is an estimate whose
+    quality depends on the number of calibration trajectories (``benchmarks.monitor_benchmark`` measures it).
     """
+    if not 0.0 < float(quantile) < 1.0:
+        raise MonitorError(f"conformal_threshold: the quantile must lie in (0, 1), got {quantile}.")
     scores = scores.reshape(-1).double().sort().values
     rank = min(math.ceil((len(scores) + 1) * float(quantile)), len(scores))
     return float(scores[rank - 1])
@@ -65,6 +75,7 @@ def running_mean(scores: torch.Tensor, window: int, trajectory: torch.Tensor | N
     scores = scores.double()
     if trajectory is None:
         trajectory = torch.zeros(scores.shape, dtype=torch.long, device=scores.device)
+    trajectory = trajectory.to(scores.device)
     time = torch.arange(scores.shape[-1], device=scores.device).expand_as(scores)
     start = torch.ones_like(trajectory, dtype=torch.bool)
     start[..., 1:] = trajectory[..., 1:] != trajectory[..., :-1]
@@ -116,7 +127,8 @@ class DeploymentMonitor(Transform):
     * in a :class:`~torchrl.envs.TransformedEnv`: :meth:`_step` scores (root observation, root
       action, next observation) and writes every entry under ``"next"``; a reset writes zeros and
       ``False``. Observation and action sizes are checked when the specs are built. The monitor
-      reads the raw observation: put it before any transform that removes it;
+      must see the raw observation at both ends of a transition: put it first in the chain, before
+      any transform that changes or removes the observation;
     * on replay-buffer samples (``rb.append_transform(monitor)``) and any tensordict of transitions
       (``monitor(td)``): the per-transition entries (not the window) go under ``"next"``;
     * at write time in a buffer (``rb.append_transform(monitor, invert=True)``).
@@ -340,9 +352,7 @@ class DeploymentMonitor(Transform):
         Returns both thresholds.
         """
         name = f"{type(self).__name__}.calibrate"
-        for label, q in (("quantile", quantile), ("window_quantile", window_quantile)):
-            if not 0.0 < float(q) < 1.0:
-                raise MonitorError(f"{name}: {label} must lie in (0, 1), got {q}.")
+        _check_quantiles(name, quantile, window_quantile)
         if "episode" not in data.keys():
             raise MonitorError(f"{name}: the data has no 'episode' entry, so its trajectories (which the windowed "
                                "mean runs along) cannot be told apart.")
@@ -359,11 +369,23 @@ class DeploymentMonitor(Transform):
         self.term_scale = logs.std(0).clamp_min(1e-6).float()
         score = self.ood_score(self.standardize(raw))
         window = running_mean(score, self.window, trajectory)
-        self.threshold = torch.tensor(conformal_threshold(score, quantile))
-        self.window_threshold = torch.tensor(conformal_threshold(window, window_quantile))
-        self.quantile = torch.tensor(float(quantile), dtype=torch.float64)
-        self.window_quantile = torch.tensor(float(window_quantile), dtype=torch.float64)
+        device = self.term_loc.device
+        self.threshold = torch.tensor(conformal_threshold(score, quantile), device=device)
+        self.window_threshold = torch.tensor(conformal_threshold(window, window_quantile), device=device)
+        self.quantile = torch.tensor(float(quantile), dtype=torch.float64, device=device)
+        self.window_quantile = torch.tensor(float(window_quantile), dtype=torch.float64, device=device)
         return {"threshold": float(self.threshold), "window_threshold": float(self.window_threshold)}
+
+    @staticmethod
+    def _check_options(name: str, calibration: TensorDictBase, quantile: float, window_quantile: float,
+                       options: dict) -> None:
+        """What would fail after the fits, checked before them."""
+        _check_quantiles(name, quantile, window_quantile)
+        if "episode" not in calibration.keys():
+            raise MonitorError(f"{name}: the calibration data has no 'episode' entry, so its trajectories (which "
+                               "the windowed mean runs along) cannot be told apart.")
+        if int(options.get("window", 1)) < 1:
+            raise MonitorError(f"{name}: window must be at least 1 step, got {options['window']}.")
 
     @staticmethod
     def _transitions(data: TensorDictBase, label: str, caller: str) -> tuple[torch.Tensor, ...]:
@@ -384,9 +406,10 @@ class DeploymentMonitor(Transform):
         """A :class:`DynamicsEnsemble` (trained in ``precision``) and a :class:`NearestStateDistance` fitted to
         ``data``'s transitions."""
         observation, action, next_observation = DeploymentMonitor._transitions(data, "train", "fit_detectors")
-        torch.manual_seed(seed)
-        dynamics = DynamicsEnsemble(observation.shape[-1], action.shape[-1], members=members,
-                                    num_cells=tuple(num_cells))
+        with torch.random.fork_rng(devices=[]):  # seeded, and the caller's RNG stream left as it was
+            torch.manual_seed(seed)
+            dynamics = DynamicsEnsemble(observation.shape[-1], action.shape[-1], members=members,
+                                        num_cells=tuple(num_cells))
         dynamics.fit(observation, action, next_observation, steps=steps, seed=seed, precision=precision)
         states = NearestStateDistance(torch.cat([observation, next_observation]), max_states=max_states, seed=seed)
         return dynamics, states
@@ -399,6 +422,7 @@ class DeploymentMonitor(Transform):
         """Split calibration: fits the detectors (:meth:`fit_detectors`) to ``train`` and calibrates on
         ``calibration``, held-out trajectories. ``tsidm`` adds the T-symmetry terms; its own training data
         must exclude ``calibration`` too. ``kwargs`` go to the constructor."""
+        cls._check_options(f"{cls.__name__}.fit", calibration, quantile, window_quantile, kwargs)
         cls._transitions(calibration, "calibration", f"{cls.__name__}.fit")
         dynamics, states = cls.fit_detectors(train, members=members, num_cells=num_cells, steps=steps,
                                              max_states=max_states, seed=seed, precision=precision)
@@ -425,8 +449,10 @@ class DeploymentMonitor(Transform):
         name = f"{cls.__name__}.cross_fit"
         if int(folds) < 2:
             raise MonitorError(f"{name}: folds must be at least 2, got {folds}.")
-        if "episode" not in data.keys():
-            raise MonitorError(f"{name}: the data has no 'episode' entry, so its trajectories cannot be told apart.")
+        if "tsidm" in kwargs:
+            raise MonitorError(f"{name} cannot refit a TS-IDM per fold; use DeploymentMonitor.fit(train, held_out, "
+                               "tsidm=...) for the T-symmetry terms.")
+        cls._check_options(name, data, quantile, window_quantile, kwargs)
         cls._transitions(data, "train", name)
         data = data.reshape(-1)
         trajectory = trajectory_ids(data)
@@ -495,11 +521,13 @@ class DeploymentMonitor(Transform):
         # No transition has happened yet: zeros, an empty window, and no flag.
         batch, device = tensordict_reset.batch_size, tensordict_reset.device
         zeros = torch.zeros(batch, device=device)
-        self._write(tensordict_reset, {key: zeros for key in (*self.terms, SCORE_KEY, WINDOW_KEY)})
+        for key in (*self.terms, SCORE_KEY, WINDOW_KEY):
+            tensordict_reset.set(key, zeros.unsqueeze(-1))
         tensordict_reset.set(RECENT_KEY, torch.zeros(*batch, self.window, device=device))
         tensordict_reset.set(COUNT_KEY, torch.zeros(*batch, 1, dtype=torch.long, device=device))
         if self.flag:
-            tensordict_reset.set(ALARM_KEY, torch.zeros(*batch, 1, dtype=torch.bool, device=device))
+            for key in (FLAG_KEY, ALARM_KEY):
+                tensordict_reset.set(key, torch.zeros(*batch, 1, dtype=torch.bool, device=device))
         return tensordict_reset
 
     def _score_transitions(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -515,7 +543,7 @@ class DeploymentMonitor(Transform):
         return tensordict
 
     def _call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # Write path of rb.append_transform(monitor, invert=True): whole transitions. In an env, _step runs instead.
+        # Called on whole transitions outside an env (in an env, _step runs instead).
         return self._score_transitions(tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -583,6 +611,10 @@ class DeploymentMonitor(Transform):
              **kwargs) -> "DeploymentMonitor":
         """Rebuilds a monitor written by :meth:`save` (read with ``weights_only``); ``observation_dim`` and
         ``action_dim`` refuse another task's. ``kwargs`` (``flag``, the keys) go to the constructor."""
+        fixed = sorted(set(kwargs) & {"score", "combine", "window", "dim_reduction", "tsidm", "dynamics", "states"})
+        if fixed:
+            raise MonitorError(f"{cls.__name__}.load: {fixed} are part of the saved monitor and cannot be changed "
+                               "at load time; build a new monitor and calibrate it.")
         payload = load_checkpoint(path, cls.CHECKPOINT_FORMAT)
         try:
             tsidm = None if payload["tsidm"] is None else TSIDM.from_payload(
@@ -601,10 +633,14 @@ class DeploymentMonitor(Transform):
                           combine=payload["combine"], window=payload["window"],
                           dim_reduction=payload["dim_reduction"], observation_dim=observation_dim,
                           action_dim=action_dim, **kwargs)
-            monitor.load_state_dict(payload["calibration"], strict=False)
+            calibration = payload["calibration"]
+            expected = {"term_loc", "term_scale", "threshold", "window_threshold", "quantile", "window_quantile"}
+            if set(calibration) != expected:
+                raise KeyError(f"calibration entries {sorted(calibration)}, expected {sorted(expected)}")
+            monitor.load_state_dict(calibration, strict=False)
         except MonitorError as err:
             raise CheckpointError(f"{path}: {err}") from None
-        except (KeyError, RuntimeError, TypeError) as err:
+        except (AttributeError, KeyError, RuntimeError, TypeError, ValueError) as err:
             raise CheckpointError(f"{path} is a damaged {cls.CHECKPOINT_FORMAT!r} checkpoint: "
                                   f"{type(err).__name__}: {err}") from None
         monitor.metadata = dict(payload.get("metadata", {}))

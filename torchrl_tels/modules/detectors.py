@@ -20,7 +20,7 @@ def _normalization(values: torch.Tensor, eps: float = 1e-6) -> tuple[torch.Tenso
 
 
 class DynamicsEnsemble(nn.Module):
-    r"""``members`` one-step models :math:`f_k(s, a) \approx \Delta = s' - s`, fitted with bootstrap batches.
+    r"""``members`` one-step models :math:`f_k(s, a) \approx \Delta = s' - s`, each fitted on its own random minibatches.
 
     States are normalized by the data's mean and standard deviation and the target step
     :math:`\Delta` by its own, so every dimension of the residual counts in units of its typical
@@ -134,7 +134,8 @@ class NearestStateDistance(nn.Module):
 
     Stores up to ``max_states`` of the data's states (a seeded random subset beyond that), each
     dimension normalized by the data's mean and standard deviation. The distance is computed as
-    :math:`\sqrt{\max(0, \|x\|^2 + \|b\|^2 - 2 x \cdot b)}` in chunks, which traces and exports.
+    :math:`\sqrt{\max(0, \|x\|^2 + \|b\|^2 - 2 x \cdot b)}`, which traces and exports; a call
+    builds a (batch, bank) matrix, so score large sets in batches (the monitor's ``_data_scores`` does).
 
     Args:
         states (Tensor): the data's states, shape ``(N, observation_dim)``.
