@@ -699,7 +699,10 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
     TS-IDM trained on a split).
     """
     path = run_dir / "monitor.pt"
-    fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed),
+    # The ensemble trains on the CPU: in bf16 where that CPU multiplies it natively, unless the run asks for
+    # fp32. Paired runs detected and alarmed as fp32 at about half the fit time (benchmarks/results/monitor/MONITOR.md).
+    precision = "fp32" if cfg.precision == "fp32" else resolve_precision("auto", "cpu")
+    fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed), "precision": precision,
                   "monitor": OmegaConf.to_container(cfg.monitor, resolve=True)}
     if cfg.resume and path.is_file():
         monitor = DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
@@ -708,7 +711,7 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
             return monitor
     m = cfg.monitor
     options = {"members": m.members, "num_cells": tuple(m.num_cells), "steps": m.steps, "quantile": m.quantile,
-               "window_quantile": m.window_quantile, "seed": cfg.seed, "window": m.window}
+               "window_quantile": m.window_quantile, "seed": cfg.seed, "window": m.window, "precision": precision}
     data = data.cpu()
     clock = time.perf_counter()
     with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
