@@ -492,3 +492,25 @@ def test_bad_options_are_refused_before_any_fit(tmp_path, monkeypatch):
         DeploymentMonitor.fit(data, data.exclude("episode"))
     with pytest.raises(MonitorError, match="cannot refit a TS-IDM"):
         DeploymentMonitor.cross_fit(data, folds=2, tsidm=small_tsidm())
+
+
+def test_batched_env_restarts_the_window_of_the_env_that_reset_only():
+    from torchrl.envs import SerialEnv
+
+    from torchrl_tels.data import load_dataset
+
+    monitor = small_monitor(load_dataset("hopper-medium-v2-10k")[:3000], window=5)
+    env = TransformedEnv(SerialEnv(2, lambda: GymEnv("Hopper-v4")), monitor)
+    env.set_seed(0)
+    rollout = env.rollout(40, break_when_any_done=False)  # (2, 40): the two hoppers fall at different steps
+    for b in range(2):
+        nxt = rollout[b]["next"]
+        done = nxt["done"].squeeze(-1)
+        trajectory = torch.cat([torch.zeros(1, dtype=torch.long), done[:-1].long().cumsum(0)])
+        start = torch.cat([torch.ones(1, dtype=torch.bool), trajectory[1:] != trajectory[:-1]])
+        step = torch.arange(40) - torch.cummax(torch.where(start, torch.arange(40), 0), 0).values
+        assert torch.equal(nxt["ood_count"].squeeze(-1), (step + 1).clamp_max(5))
+        score = nxt["ood_score"].squeeze(-1)
+        torch.testing.assert_close(nxt["ood_window"].squeeze(-1), running_mean(score, 5, trajectory).float())
+    ends = [rollout[b]["next", "done"].squeeze(-1)[:-1].nonzero().squeeze(-1).tolist() for b in range(2)]
+    assert ends[0] and ends[1] and ends[0] != ends[1], ends  # the resets fall at different steps
