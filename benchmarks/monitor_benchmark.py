@@ -61,7 +61,7 @@ from benchmarks.harness import command_line, invocation, machine_description, RE
 from benchmarks.step_floor import recipe_config
 from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes, split_trajectories, trajectory_ids
 from torchrl_tels.envs import DeploymentMonitor
-from torchrl_tels.envs.monitor import DEFAULT_COMBINATION, running_mean, SCORE_TERMS
+from torchrl_tels.envs.monitor import DEFAULT_COMBINATION, running_mean, SCORE_TERMS, steps_into_trajectory
 from torchrl_tels.trainer import fit_tsidm, RunState
 
 RESULTS = REPO / "benchmarks" / "results" / "monitor"
@@ -111,11 +111,7 @@ def auroc(negatives, positives) -> float:
 
 def full_windows(score: torch.Tensor, trajectory: torch.Tensor, k: int) -> torch.Tensor:
     """The running mean over ``k`` steps at every step whose window lies wholly inside its trajectory."""
-    mean = running_mean(score, k, trajectory)
-    start = torch.ones_like(trajectory, dtype=torch.bool)
-    start[1:] = trajectory[1:] != trajectory[:-1]
-    position = torch.arange(len(score)) - torch.cummax(torch.where(start, torch.arange(len(score)), 0), 0).values
-    return mean[position >= k - 1]
+    return running_mean(score, k, trajectory)[steps_into_trajectory(trajectory) >= k - 1]
 
 
 # ----------------------------------------------------------------------- data
@@ -300,15 +296,20 @@ def maze_data(seed: int):
     return setup.dataset, delete_regions(full, boxes, 1.0, seed=seed), regions, boxes
 
 
+def setting_data(setting: str, seed: int) -> tuple[str, TensorDictBase, TensorDictBase | None]:
+    """The setting's dataset name, its in-distribution data, and for the maze the runs inside the deleted regions."""
+    if setting == "maze":
+        dataset, data, inside, _ = maze_data(seed)
+        return dataset, data, inside
+    return SETTINGS[setting]["dataset"], load_dataset(SETTINGS[setting]["dataset"]), None
+
+
 def run(args) -> dict:
     torch.set_num_threads(args.threads)
     print(f"torch threads pinned to {args.threads}", flush=True)
     setting = SETTINGS[args.setting]
     clock = {}
-    if args.setting == "maze":
-        dataset, data, inside, boxes = maze_data(args.seed)
-    else:
-        dataset, data = setting["dataset"], load_dataset(setting["dataset"])
+    dataset, data, inside = setting_data(args.setting, args.seed)
     rest, test = split_trajectories(data, 0.8, args.seed)
     fit_part, cal_part = split_trajectories(rest, 0.75, args.seed + 1)
     print(f"{dataset}: fit {len(fit_part)}, calibration {len(cal_part)}, test {len(test)} transitions", flush=True)
@@ -328,8 +329,6 @@ def run(args) -> dict:
                                   window=args.window)
     in_sample.calibrate(fit_part)
     monitors = {"in_sample": in_sample, **monitors}
-    default = DeploymentMonitor(dynamics=split.dynamics, states=split.states, window=args.window)
-    default.calibrate(cal_part)  # the split calibration of the default score alone, for its alarm rates
     score = Scorer(split)
     test_scores, test_traj = score(test), trajectory_ids(test)
 
@@ -389,9 +388,6 @@ def run(args) -> dict:
 
     calibration = {m: {"threshold": float(monitor.threshold), "window_threshold": float(monitor.window_threshold),
                        "test": alarm_rates(monitor, test)} for m, monitor in monitors.items()}
-    calibration["split (default score only)"] = {"threshold": float(default.threshold),
-                                                 "window_threshold": float(default.window_threshold),
-                                                 "test": alarm_rates(default, test)}
     return {
         "command": invocation(),
         "setting": args.setting,
@@ -423,10 +419,7 @@ def run_far(args) -> dict:
     """Every trajectory held out once: the false-alarm rates of each calibration on data no part of it saw."""
     torch.set_num_threads(args.threads)
     print(f"torch threads pinned to {args.threads}", flush=True)
-    if args.setting == "maze":
-        dataset, data, _, _ = maze_data(args.seed)
-    else:
-        dataset, data = SETTINGS[args.setting]["dataset"], load_dataset(SETTINGS[args.setting]["dataset"])
+    dataset, data, _ = setting_data(args.setting, args.seed)
     trajectory = trajectory_ids(data)
     count = int(trajectory[-1]) + 1
     order = torch.randperm(count, generator=torch.Generator().manual_seed(args.seed))
@@ -613,7 +606,7 @@ def render(runs: dict[str, dict[str, list[dict]]], bf16: dict | None = None) -> 
                       f"{first['window']} steps)", "",
                   "| calibration | flag rate | × nominal | window-alarm steps / 1,000 | alarm onsets / 1,000 |",
                   "|---|---|---|---|---|"]
-        for method in (*CALIBRATIONS, "split (default score only)"):
+        for method in CALIBRATIONS:
             tests = [r["calibration"][method]["test"] for r in records]
             rates = [t["flag_rate"] for t in tests]
             lines.append(f"| {method} | {_cell(rates)} | {_cell([x / nominal['flag_rate'] for x in rates])} | "

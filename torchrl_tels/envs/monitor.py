@@ -19,7 +19,8 @@ from torchrl_tels.errors import MonitorError
 from torchrl_tels.modules.detectors import DynamicsEnsemble, NearestStateDistance
 from torchrl_tels.modules.tsidm import squared_norm, TSIDM
 
-__all__ = ["DEFAULT_COMBINATION", "DeploymentMonitor", "SCORE_TERMS", "conformal_threshold", "running_mean"]
+__all__ = ["DEFAULT_COMBINATION", "DeploymentMonitor", "SCORE_TERMS", "conformal_threshold", "running_mean",
+           "steps_into_trajectory"]
 
 TSYM_KEY = "tsym_inconsistency"
 DYNAMICS_KEY = "dynamics_residual"
@@ -65,6 +66,14 @@ def conformal_threshold(scores: torch.Tensor, quantile: float) -> float:
     return float(scores[rank - 1])
 
 
+def steps_into_trajectory(trajectory: torch.Tensor) -> torch.Tensor:
+    """``0, 1, 2, ...`` along the last dimension, restarting wherever the trajectory id changes."""
+    time = torch.arange(trajectory.shape[-1], device=trajectory.device).expand_as(trajectory)
+    start = torch.ones_like(trajectory, dtype=torch.bool)
+    start[..., 1:] = trajectory[..., 1:] != trajectory[..., :-1]
+    return time - torch.cummax(torch.where(start, time, torch.zeros_like(time)), -1).values
+
+
 def running_mean(scores: torch.Tensor, window: int, trajectory: torch.Tensor | None = None) -> torch.Tensor:
     """The mean of each step's score and the ``window - 1`` steps before it in the same trajectory.
 
@@ -77,9 +86,7 @@ def running_mean(scores: torch.Tensor, window: int, trajectory: torch.Tensor | N
         trajectory = torch.zeros(scores.shape, dtype=torch.long, device=scores.device)
     trajectory = trajectory.to(scores.device)
     time = torch.arange(scores.shape[-1], device=scores.device).expand_as(scores)
-    start = torch.ones_like(trajectory, dtype=torch.bool)
-    start[..., 1:] = trajectory[..., 1:] != trajectory[..., :-1]
-    first = torch.cummax(torch.where(start, time, torch.zeros_like(time)), -1).values  # first step of the trajectory
+    first = time - steps_into_trajectory(trajectory)  # the first step of each step's trajectory
     lower = torch.maximum(first, time - window + 1)
     cumulative = torch.cat([torch.zeros_like(scores[..., :1]), scores.cumsum(-1)], -1)
     total = cumulative[..., 1:] - cumulative.gather(-1, lower)
