@@ -22,6 +22,7 @@ __all__ = [
     "check_writable_folder",
     "training_config",
     "resolve_device",
+    "monitor_fit_options",
     "resolve_threads",
     "validate_config",
 ]
@@ -195,6 +196,13 @@ def validate_config(cfg) -> None:
     if cfg.guide.mode == "stochastic" and _number(cfg, "guide.reach_weight") > 0:
         raise ConfigError("guide.reach_weight applies to the deterministic guide (Eq. 9) only; "
                           "guide.mode=stochastic needs guide.reach_weight=0.")
+
+
+def monitor_fit_options(settings) -> dict:
+    """The keywords of ``DeploymentMonitor.fit``/``cross_fit`` that a run's ``monitor`` group sets, besides the
+    calibration scheme and the flag quantile."""
+    return {"members": settings.members, "num_cells": tuple(settings.num_cells), "steps": settings.steps,
+            "window": settings.window, "window_quantile": settings.window_quantile}
 
 
 def _check_monitor(cfg) -> None:

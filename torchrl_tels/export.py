@@ -29,6 +29,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_tels.checkpoint import file_sha256
+from torchrl_tels.config import monitor_fit_options
 from torchrl_tels.data import load_dataset
 from torchrl_tels.envs import make_eval_env, DeploymentMonitor
 from torchrl_tels.envs.monitor import SCORE_KEY
@@ -134,9 +135,7 @@ def fit_monitor(dataset: str, quantile: float, run_dir: Path, observation_dim: i
                                f"have size {size}: it is another task's data.")
     config = run_dir / "config.yaml"
     settings = OmegaConf.select(OmegaConf.load(config), "monitor") if config.is_file() else None
-    options = {} if settings is None else {
-        "folds": settings.folds, "members": settings.members, "num_cells": tuple(settings.num_cells),
-        "steps": settings.steps, "window": settings.window, "window_quantile": settings.window_quantile}
+    options = {} if settings is None else {"folds": settings.folds, **monitor_fit_options(settings)}
     monitor = DeploymentMonitor.cross_fit(data, quantile=quantile, **options)
     monitor.metadata["dataset"] = str(dataset)
     return monitor

@@ -32,7 +32,8 @@ from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
-from torchrl_tels.config import check_same_run, resolve_device, resolve_precision, training_config
+from torchrl_tels.config import (check_same_run, monitor_fit_options, resolve_device, resolve_precision,
+                                 training_config)
 from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
                                subset_dataset, trajectory_ids)
 from torchrl_tels.data.datasets import recorded_env_id
@@ -710,8 +711,7 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
         if all(monitor.metadata.get(key) == value for key, value in fitted_for.items()):
             return monitor
     m = cfg.monitor
-    options = {"members": m.members, "num_cells": tuple(m.num_cells), "steps": m.steps, "quantile": m.quantile,
-               "window_quantile": m.window_quantile, "seed": cfg.seed, "window": m.window, "precision": precision}
+    options = {**monitor_fit_options(m), "quantile": m.quantile, "seed": cfg.seed, "precision": precision}
     data = data.cpu()
     clock = time.perf_counter()
     with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
