@@ -32,7 +32,11 @@ Hyperparameters (:data:`HYPERPARAMETERS`, each with its source):
   (+1e-3), as in the TD3+BC paper (Fujimoto & Gu, 2021, Sec. 5); TorchRL's
   script leaves them raw.
 * Mazes (:data:`MAZE_HYPERPARAMETERS`): IQL and IQL-latent take the IQL
-  paper's AntMaze values, expectile 0.9, temperature 10 and rewards r - 1.
+  paper's AntMaze values, expectile 0.9, temperature 10 and rewards r - 1, and
+  its authors' actor and action handling (:data:`IQL_AUTHORS_ACTOR`): a Gaussian
+  with a tanh mean instead of TorchRL's tanh-squashed Gaussian, dataset actions
+  clipped to +-(1 - 1e-5), a cosine-decayed actor learning rate. Where TorchRL's
+  recipe differs: its actor is a TanhNormal and its lr constant.
 * BC: TD3+BC's actor without its Q term: the same deterministic 256x256 ReLU
   MLP with a tanh output, the same normalized states, ``BCLoss`` with an L2
   loss, Adam lr 3e-4.
@@ -56,11 +60,11 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
-from tensordict.nn.distributions import NormalParamExtractor
+from tensordict.nn.distributions import AddStateIndependentNormalScale, NormalParamExtractor
 from torch import nn
 from torchrl.envs import Compose, DoubleToFloat, EnvBase, ObservationNorm, TransformedEnv
 from torchrl.envs.utils import ExplorationType
-from torchrl.modules import MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
+from torchrl.modules import IndependentNormal, MLP, ProbabilisticActor, TanhModule, TanhNormal, ValueOperator
 from torchrl.objectives import BCLoss, IQLLoss, SoftUpdate, TD3BCLoss
 
 from torchrl_tels.checkpoint import file_sha256
@@ -69,7 +73,7 @@ from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normali
 from torchrl_tels.config import resolve_device
 from torchrl_tels.training import FiniteWatch
 
-__all__ = ["HYPERPARAMETERS", "MAZE_HYPERPARAMETERS", "METHODS", "check_reward_scale", "return_range_scale",
+__all__ = ["HYPERPARAMETERS", "IQL_AUTHORS_ACTOR", "MAZE_HYPERPARAMETERS", "METHODS", "check_reward_scale", "return_range_scale",
            "train_baseline"]
 
 METHODS = ("iql", "td3bc", "bc", "iql_latent")
@@ -89,7 +93,28 @@ _IQL = {
     "normalize_observations": False,
     "reward_scale": 1.0,
     "reward_bias": 0.0,
+    "actor": "tanh_normal",
+    "log_std_min": -5.0,
+    "action_clip_eps": 0.0,
+    "actor_lr_schedule": "constant",
     "source": "torchrl sota-implementations/iql/offline_config.yaml (states not normalized, as there)",
+}
+
+#: IQL's actor and data handling as its authors ran them (Kostrikov et al., 2022, the code released
+#: with the paper), each with the reason it matters on data whose actions sit at the box's edge.
+IQL_AUTHORS_ACTOR: dict[str, Any] = {
+    # A Gaussian whose mean is tanh(MLP(s)) and whose samples are left unsquashed, with a learned
+    # state-independent log std clipped below at -5. A tanh-squashed Gaussian (TorchRL's recipe) must
+    # push its pre-tanh mean towards infinity to give an action of exactly +-1 any likelihood; this
+    # actor reaches +-1 with a finite mean.
+    "actor": "tanh_mean_gaussian",
+    "log_std_min": -5.0,
+    # Dataset actions are clipped to +-(1 - 1e-5) of the box before training, as the authors' loader does.
+    "action_clip_eps": 1e-5,
+    # The actor's learning rate decays to 0 over the run by a cosine schedule; the critics' stays constant.
+    "actor_lr_schedule": "cosine",
+    "source": "IQL authors' code: tanh-mean Gaussian actor, state-independent std, actions clipped to "
+              "+-(1 - 1e-5), cosine actor lr; raw states (not normalized), as theirs; TorchRL's IQLLoss",
 }
 
 #: Each baseline's hyperparameters; ``train_baseline(..., hyperparameters=...)`` overrides entries.
@@ -131,7 +156,8 @@ HYPERPARAMETERS: dict[str, dict[str, Any]] = {
 #: (Kostrikov et al., 2022, App. B: expectile 0.9, temperature 10, rewards r - 1),
 #: which POR and the TELS paper's maze runs also use.
 MAZE_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
-    method: {"expectile": 0.9, "temperature": 10.0, "reward_bias": -1.0} for method in ("iql", "iql_latent")
+    method: {"expectile": 0.9, "temperature": 10.0, "reward_bias": -1.0, **IQL_AUTHORS_ACTOR}
+    for method in ("iql", "iql_latent")
 }
 
 _OBS_NORM_EPS = 1e-3  # TD3+BC paper: std + 1e-3
@@ -181,6 +207,18 @@ def _scale_rewards(data: TensorDictBase, hp: dict[str, Any]) -> tuple[TensorDict
     return data, scale
 
 
+def _clip_actions(data: TensorDictBase, action_spec, eps: float) -> TensorDictBase:
+    """The data with its actions clipped to the action box shrunk by ``eps`` of its half-width (IQL's
+    authors: +-(1 - 1e-5)), so no action sits exactly on the edge; ``eps=0`` leaves the data as it is."""
+    if not eps:
+        return data
+    low, high = action_spec.space.low.to(data["action"]), action_spec.space.high.to(data["action"])
+    center, half = (high + low) / 2, (high - low) / 2 * (1 - eps)
+    data = data.clone()
+    data["action"] = data["action"].clamp(center - half, center + half)
+    return data
+
+
 def _mlp(in_features: int, out_features: int, hidden_sizes) -> MLP:
     return MLP(in_features=in_features, out_features=out_features, num_cells=list(hidden_sizes),
                activation_class=nn.ReLU)
@@ -195,14 +233,17 @@ def _deterministic_actor(obs_key: str, obs_dim: int, action_spec, hp) -> TensorD
     )
 
 
-def _build_iql(obs_key, obs_dim, action_spec, hp):
-    act_dim = action_spec.shape[-1]
+IQL_ACTORS = ("tanh_normal", "tanh_mean_gaussian")
+
+
+def _tanh_normal_actor(obs_key, obs_dim, action_spec, hp) -> ProbabilisticActor:
+    """TorchRL's IQL recipe actor: a TanhNormal with a state-dependent scale."""
     actor_net = nn.Sequential(
-        _mlp(obs_dim, 2 * act_dim, hp["hidden_sizes"]),
+        _mlp(obs_dim, 2 * action_spec.shape[-1], hp["hidden_sizes"]),
         NormalParamExtractor(scale_mapping=f"biased_softplus_{hp['default_policy_scale']}",
                              scale_lb=hp["scale_lb"]),
     )
-    actor = ProbabilisticActor(
+    return ProbabilisticActor(
         TensorDictModule(actor_net, in_keys=[obs_key], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"],
         spec=action_spec,
@@ -210,28 +251,66 @@ def _build_iql(obs_key, obs_dim, action_spec, hp):
         distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high, "tanh_loc": False},
         default_interaction_type=ExplorationType.RANDOM,
     )
-    qvalue = ValueOperator(_mlp(obs_dim + act_dim, 1, hp["hidden_sizes"]), in_keys=[obs_key, "action"])
+
+
+def _tanh_mean_gaussian_actor(obs_key, obs_dim, action_spec, hp) -> ProbabilisticActor:
+    """IQL's authors' actor: N(tanh(MLP(s)) mapped into the action box, exp(log_std)), log_std a free
+    per-dimension parameter clipped below at ``log_std_min``; samples are not squashed, and the
+    deterministic action is the mean, inside the box by construction."""
+    act_dim = action_spec.shape[-1]
+    return ProbabilisticActor(
+        TensorDictSequential(
+            TensorDictModule(_mlp(obs_dim, act_dim, hp["hidden_sizes"]), in_keys=[obs_key], out_keys=["mean_param"]),
+            TanhModule(in_keys=["mean_param"], out_keys=["loc"], spec=action_spec),
+            TensorDictModule(AddStateIndependentNormalScale(act_dim, scale_mapping="exp",
+                                                            scale_lb=math.exp(hp["log_std_min"])),
+                             in_keys=["loc"], out_keys=["loc", "scale"]),
+        ),
+        in_keys=["loc", "scale"],
+        spec=action_spec,
+        distribution_class=IndependentNormal,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def _build_iql(obs_key, obs_dim, action_spec, hp, steps):
+    if hp["actor"] not in IQL_ACTORS:
+        raise ValueError(f"unknown IQL actor {hp['actor']!r}; expected one of {IQL_ACTORS}.")
+    if hp["actor_lr_schedule"] not in ("constant", "cosine"):
+        raise ValueError(f"actor_lr_schedule must be 'constant' or 'cosine', got {hp['actor_lr_schedule']!r}.")
+    build_actor = _tanh_normal_actor if hp["actor"] == "tanh_normal" else _tanh_mean_gaussian_actor
+    actor = build_actor(obs_key, obs_dim, action_spec, hp)
+    qvalue = ValueOperator(_mlp(obs_dim + action_spec.shape[-1], 1, hp["hidden_sizes"]), in_keys=[obs_key, "action"])
     value = ValueOperator(_mlp(obs_dim, 1, hp["hidden_sizes"]), in_keys=[obs_key])
     loss = IQLLoss(actor, qvalue, value_network=value, loss_function=hp["loss_function"],
                    temperature=hp["temperature"], expectile=hp["expectile"])
     loss.make_value_estimator(gamma=hp["gamma"])
     target = SoftUpdate(loss, tau=hp["tau"])
-    params = [loss.actor_network_params, loss.qvalue_network_params, loss.value_network_params]
-    optim = torch.optim.Adam([p for group in params for p in group.values(True, True)], lr=hp["lr"],
-                             weight_decay=hp["weight_decay"])
+    # Separate Adam states per network are what one Adam over all of them computes (Adam is per parameter);
+    # the split lets the actor's learning rate follow its own schedule.
+    kwargs = {"lr": hp["lr"], "weight_decay": hp["weight_decay"]}
+    actor_optim = torch.optim.Adam(list(loss.actor_network_params.values(True, True)), **kwargs)
+    critic_optim = torch.optim.Adam([p for group in (loss.qvalue_network_params, loss.value_network_params)
+                                     for p in group.values(True, True)], **kwargs)
+    schedule = (torch.optim.lr_scheduler.CosineAnnealingLR(actor_optim, T_max=steps)
+                if hp["actor_lr_schedule"] == "cosine" else None)
 
     def update(batch, step):
         losses = loss(batch)
-        optim.zero_grad(set_to_none=True)
+        actor_optim.zero_grad(set_to_none=True)
+        critic_optim.zero_grad(set_to_none=True)
         (losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_value"]).backward()
-        optim.step()
+        actor_optim.step()
+        critic_optim.step()
+        if schedule is not None:
+            schedule.step()
         target.step()
         return losses
 
     return actor, update, loss
 
 
-def _build_td3bc(obs_key, obs_dim, action_spec, hp):
+def _build_td3bc(obs_key, obs_dim, action_spec, hp, steps):
     actor = _deterministic_actor(obs_key, obs_dim, action_spec, hp)
     qvalue = ValueOperator(_mlp(obs_dim + action_spec.shape[-1], 1, hp["hidden_sizes"]),
                            in_keys=["action", obs_key])
@@ -262,7 +341,7 @@ def _build_td3bc(obs_key, obs_dim, action_spec, hp):
     return actor, update, loss
 
 
-def _build_bc(obs_key, obs_dim, action_spec, hp):
+def _build_bc(obs_key, obs_dim, action_spec, hp, steps):
     actor = _deterministic_actor(obs_key, obs_dim, action_spec, hp)
     loss = BCLoss(actor, loss_function=hp["loss_function"])
     optim = torch.optim.Adam(loss.parameters(), lr=hp["lr"])
@@ -390,11 +469,12 @@ def train_baseline(
         wrap = lambda env: TransformedEnv(env, DoubleToFloat())
     env = make_eval_envs(task.env_id, eval_episodes if eval_batched else 1, wrap=wrap)
     action_spec = env.action_spec_unbatched
+    data = _clip_actions(data, action_spec, hp.get("action_clip_eps", 0.0))
 
     buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed,
                                         device=device)
     with device:  # every network and optimizer state is created there
-        actor, update, loss = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp)
+        actor, update, loss = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp, steps)
     watch = FiniteWatch({"iql": "IQL", "iql_latent": "IQL", "td3bc": "TD3+BC", "bc": "BC"}[method])
     setup_s = time.perf_counter() - start_time
 

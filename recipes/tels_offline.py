@@ -36,6 +36,8 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import hydra  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from hydra.types import RunMode  # noqa: E402
 import torch  # noqa: E402
 import tqdm  # noqa: E402
 from omegaconf import DictConfig, open_dict, OmegaConf  # noqa: E402
@@ -53,6 +55,7 @@ from torchrl_tels.errors import TelsError  # noqa: E402
 from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
 from torchrl_tels.seeds import SeedRNG  # noqa: E402
 from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
+from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, RunFolderClaim  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
     check_same_stage1_length,
     evaluate,
@@ -71,14 +74,40 @@ from torchrl_tels.trainer import (  # noqa: E402
 )
 
 
+#: the run folders this process has claimed (one per run); released when ``main`` returns
+CLAIMS: list[RunFolderClaim] = []
+
+
 @hydra.main(config_path="config", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     """A bad input, a bad checkpoint or a diverged loss ends the run with one ``error:`` line, exit code 2."""
     try:
+        use_sweep_job_dir(cfg)
         return train(cfg) if cfg.seeds is None else train_seeds(cfg)
     except TelsError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
+    finally:
+        while CLAIMS:
+            CLAIMS.pop().release()
+
+
+def use_sweep_job_dir(cfg: DictConfig) -> None:
+    """Under ``-m``, a job whose ``run_dir`` the user did not set runs in hydra's job folder.
+
+    That folder is ``hydra.sweep.dir/<job number>_<the job's overrides>`` (config.yaml), unique
+    per job whatever the launcher, so parallel jobs never share a folder, and the same sweep
+    command (with the same ``hydra.sweep.dir``) finds the same folders again with ``resume=true``.
+    """
+    if not HydraConfig.initialized():
+        return
+    hydra_cfg = HydraConfig.get()
+    if hydra_cfg.mode != RunMode.MULTIRUN:
+        return
+    if any(o.lstrip("+~").split("=", 1)[0] == "run_dir" for o in hydra_cfg.overrides.task):
+        return
+    with open_dict(cfg):
+        cfg.run_dir = hydra_cfg.runtime.output_dir
 
 
 def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
@@ -90,6 +119,7 @@ def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
     torch.set_num_threads(resolve_threads(cfg.threads))
     torch.manual_seed(cfg.seed)
     run_dir = check_folder_creatable(cfg.run_dir)
+    check_run_dir_free(run_dir, resume=cfg.resume, overwrite=cfg.overwrite)
     run = RunState.start(cfg, run_dir / "state.pt")
     if cfg.resume and (run_dir / "state.pt").exists() and run.stage != "done":
         print(f"resuming {run_dir} at {run.stage} step {run.step}")
@@ -97,8 +127,8 @@ def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
 
 
 def open_run_dir(cfg: DictConfig, run: RunState, run_dir: Path) -> RunLogger:
-    """Creates ``run_dir`` with the resolved config; the run's logger (CSV, wandb when it works)."""
-    run_dir.mkdir(parents=True, exist_ok=True)
+    """Claims ``run_dir`` (created if need be) and writes the resolved config; the run's logger (CSV, wandb)."""
+    CLAIMS.append(claim_run_dir(run_dir, resume=cfg.resume, overwrite=cfg.overwrite))
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
                        config=OmegaConf.to_container(cfg, resolve=True), wandb_id=run.wandb_id)

@@ -30,7 +30,7 @@ __all__ = [
 #: Top-level config entries that may differ between a run and its ``resume=true``
 #: continuation: they decide where and how a run is logged, not what it computes. The deployment
 #: monitor is fitted once and saved as monitor.pt, which a continuation reads back.
-RESUMABLE_KEYS = ("run_dir", "resume", "threads", "device", "logger", "checkpoint", "compile", "monitor")
+RESUMABLE_KEYS = ("run_dir", "resume", "overwrite", "threads", "device", "logger", "checkpoint", "compile", "monitor")
 
 #: Options added after checkpoints were first written, as (section, key): (the value that
 #: reproduces how a checkpoint without the option behaved, when the option matters at all).

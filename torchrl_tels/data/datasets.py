@@ -91,6 +91,7 @@ EMBEDDED_DATASETS: tuple[str, ...] = (
     "halfcheetah-medium-v2-10k",
     "walker2d-medium-v2-10k",
     "antmaze-umaze-v0-10k",
+    "antmaze-umaze-diverse-v0-10k",
 )
 _EMBEDDED_ALIASES = ("embedded", "default")
 
