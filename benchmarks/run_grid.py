@@ -45,8 +45,8 @@ from typing import NamedTuple
 import torch
 import yaml
 
-from benchmarks.baselines import (check_reward_scale, HYPERPARAMETERS, MAZE_HYPERPARAMETERS, METHODS as BASELINES,
-                                  train_baseline)
+from benchmarks.baselines import (ADROIT_HYPERPARAMETERS, check_reward_scale, HYPERPARAMETERS, MAZE_HYPERPARAMETERS,
+                                  METHODS as BASELINES, train_baseline)
 from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
                                 skip_existing, write_result)
 from torchrl_tels.record import second_half_mean
@@ -58,7 +58,9 @@ DEFAULT_WORK = REPO / "runs" / "benchmarks"
 #: TELS with a reduced TS-IDM (paper Table 3): ``tels_<variant>`` trains with ``tsidm.ablation=<variant>``.
 ABLATIONS = {"tels_ae": "ae", "tels_dyn": "dyn", "tels_ode": "ode"}
 GRID_METHODS = ("tels", *BASELINES)  # tels first: iql_latent reuses its TS-IDM; ablations only on request
-METHODS = (*GRID_METHODS, *ABLATIONS)
+#: TELS run by the recipe: the default, the paper's reading (domain=paper, or adroit_paper on Adroit), ablations
+TELS_METHODS = ("tels", "tels_paper", *ABLATIONS)
+METHODS = (*GRID_METHODS, "tels_paper", *ABLATIONS)
 TASKS = (
     "hopper-medium-v2-10k",
     "hopper-medium-replay-v2-10k",
@@ -67,9 +69,9 @@ TASKS = (
 )
 SEEDS = (0, 1, 2)
 LABELS = {"bc": "BC", "td3bc": "TD3+BC", "iql": "IQL", "iql_latent": "IQL (TS-IDM latent)", "tels": "TELS",
-          "tels_ae": "φ/ψ + h_inv", "tels_dyn": "↑ + h_fwd, h_rvs", "tels_ode": "↑ + ℓ_ode",
+          "tels_paper": "TELS (paper's reading)", "tels_ae": "φ/ψ + h_inv", "tels_dyn": "↑ + h_fwd, h_rvs", "tels_ode": "↑ + ℓ_ode",
           "tsrl": "TSRL"}
-TABLE_COLUMNS = ("bc", "td3bc", "iql", "iql_latent", "tels")
+TABLE_COLUMNS = ("bc", "td3bc", "iql", "iql_latent", "tels", "tels_paper")
 
 #: TELS paper, Table 1: normalized score, mean and std over 5 seeds (final 10 evaluations), same 10k sets.
 PAPER_TABLE1 = {
@@ -83,10 +85,25 @@ PAPER_TABLE1 = {
                                "tsrl": (49.7, 10.6), "tels": (62.4, 5.3)},
     "antmaze-umaze-v0-10k": {"bc": (44.7, 42.1), "td3bc": (0.7, 1.2), "iql": (65.1, 19.4),
                              "tsrl": (76.1, 15.6), "tels": (88.7, 7.7)},
+    "antmaze-umaze-diverse-v0-10k": {"bc": (24.1, 22.2), "td3bc": (16.27, 16.4), "iql": (34.6, 18.5),
+                                     "tsrl": (52.2, 22.1), "tels": (60.9, 16.9)},
+    # Table 1 (door-human, 5k transitions: BC and IQL without a std there) and Table 6 (10k of expert data)
+    "door-human-v1": {"bc": (0.5, None), "td3bc": (0.5, None), "iql": (4.3, None), "tsrl": (0.5, 0.3),
+                      "tels": (11.8, 1.6)},
+    "pen-expert-v1-10k": {"bc": (27.6, 21.3), "td3bc": (5.2, 2.7), "iql": (68.9, 24.3), "tsrl": (65.6, 22.8),
+                          "tels": (105.7, 12.1)},
+    "door-expert-v1-10k": {"bc": (1.2, 1.1), "td3bc": (5.2, 3.1), "iql": (79.2, 8.8), "tsrl": (46.3, 12.5),
+                           "tels": (101.8, 8.5)},
+    "hammer-expert-v1-10k": {"bc": (0.2, 0.1), "td3bc": (0.5, 0.2), "iql": (70.3, 30.3), "tsrl": (77.6, 31.2),
+                             "tels": (91.5, 25.9)},
+    "relocate-expert-v1-10k": {"bc": (0.6, 0.1), "td3bc": (0.1, 0.1), "iql": (31.1, 8.4), "tsrl": (45.2, 15.3),
+                               "tels": (85.6, 12.1)},
 }
 #: Task-name prefixes run with the recipe's maze domain (stochastic guide, AntMaze values, r - 1)
 #: and the baselines' maze hyperparameters.
 MAZE_PREFIXES = ("antmaze", "pointmaze")
+#: Task-name prefixes run with the recipe's Adroit domain and the baselines' Adroit hyperparameters.
+ADROIT_PREFIXES = ("pen-", "door-", "hammer-", "relocate-")
 PAPER_POLICY_STEPS = 100_000  # Table 11
 PAPER_TSIDM_EPOCHS = 1000  # Table 10
 EVAL_LAST_N = 10  # Table 1: final 10 evaluations
@@ -99,6 +116,17 @@ warnings.filterwarnings("ignore", message=r".*wasn't part of the annotations.*")
 # ------------------------------------------------------------------ paths
 def is_maze(task: str) -> bool:
     return task.startswith(MAZE_PREFIXES)
+
+
+def is_adroit(task: str) -> bool:
+    return task.startswith(ADROIT_PREFIXES)
+
+
+def domain_hyperparameters(method: str, task: str) -> dict:
+    """The baseline's overrides for ``task``'s domain: the maze or the Adroit values, none on locomotion."""
+    if is_maze(task):
+        return MAZE_HYPERPARAMETERS.get(method, {})
+    return ADROIT_HYPERPARAMETERS.get(method, {}) if is_adroit(task) else {}
 
 
 def result_path(results_dir: Path, method: str, task: str, seed: int) -> Path:
@@ -130,11 +158,15 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
     return cmd
 
 
-def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str) -> list[str]:
+def _recipe_overrides(task: str, seed: int, run_dir: Path, args, wandb_mode: str, method: str = "tels") -> list[str]:
     overrides = [f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true",
                  f"logger.wandb_mode={wandb_mode}", f"logger.exp_name=tels_{task}_seed{seed}"]
     if is_maze(task):
         overrides += ["domain=maze", "budget=paper"]
+    elif is_adroit(task):
+        overrides += ["domain=adroit_paper" if method == "tels_paper" else "domain=adroit", "budget=paper"]
+    elif method == "tels_paper":
+        overrides += ["domain=paper"]
     if args.tsidm_steps is not None:
         overrides.append(f"tsidm.steps={args.tsidm_steps}")
     return overrides
@@ -144,7 +176,7 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     run_dir = tels_run_dir(args.work_dir, task, seed, method)
     if args.force and run_dir.exists():
         shutil.rmtree(run_dir)
-    overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode) + [
+    overrides = _recipe_overrides(task, seed, run_dir, args, wandb_mode, method) + [
         f"policy.steps={args.steps}", f"policy.batch_size={BATCH_SIZE}", f"eval.interval={args.eval_interval}",
         f"eval.episodes={args.eval_episodes}", f"eval.last_n={EVAL_LAST_N}", f"eval.batched={args.eval_batched}",
         f"device={args.device}",
@@ -185,7 +217,7 @@ def budget_of(args, method: str) -> dict:
     budget = {"policy_steps": args.steps, "batch_size": BATCH_SIZE, "eval_interval": args.eval_interval,
               "eval_episodes": args.eval_episodes, "eval_last_n": EVAL_LAST_N, "eval_batched": args.eval_batched,
               "paper_policy_steps": PAPER_POLICY_STEPS}
-    if method in ("tels", "iql_latent", *ABLATIONS):
+    if method in ("iql_latent", *TELS_METHODS):
         budget["tsidm_steps"] = args.tsidm_steps  # None: the recipe's default, Table 10's 1000 epochs
         budget["paper_tsidm_epochs"] = PAPER_TSIDM_EPOCHS
     return budget
@@ -199,7 +231,7 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
     started = datetime.now(timezone.utc)
     start = time.perf_counter()
     print(f"== {method} {task} seed {seed}: {args.steps} policy steps", flush=True)
-    if method == "tels" or method in ABLATIONS:
+    if method in TELS_METHODS:
         results = run_tels(task, seed, args, wandb_mode, method)
         threads = args.threads or torch.get_num_threads()  # the recipe starts with the same default
     else:
@@ -218,7 +250,7 @@ def run_one(method: str, task: str, seed: int, args) -> Path:
             eval_episodes=args.eval_episodes, eval_last_n=EVAL_LAST_N, eval_batched=args.eval_batched,
             threads=args.threads, device=args.device,
             tsidm_path=tsidm_path, log_fn=logger.log_scalars if logger else None,
-            hyperparameters={**(MAZE_HYPERPARAMETERS.get(method, {}) if is_maze(task) else {}), **args.set},
+            hyperparameters={**domain_hyperparameters(method, task), **args.set},
         )
         if method == "iql_latent":
             results["tsidm"]["source"] = source
@@ -281,7 +313,7 @@ def _budget_cell(by_method: dict) -> str:
     policy = sorted({r["budget"]["policy_steps"] for r in every_run})
     protocol = sorted({(r["budget"]["eval_interval"], r["budget"]["eval_episodes"]) for r in every_run})
     tsidm = sorted({str(r["budget"].get("tsidm_steps")) for m, runs in by_method.items()
-                    if m in ("tels", "iql_latent", *ABLATIONS) for r in runs})
+                    if m in ("iql_latent", *TELS_METHODS) for r in runs})
     if len(policy) > 1:
         text = "**budgets differ: " + ", ".join(_steps_label(s) for s in policy) + " steps**"
     else:
@@ -315,6 +347,11 @@ def _changed_hyperparameters(found: dict) -> list[str]:
     return [f"**Changed from the baselines' defaults:** {', '.join(sorted(changed))}.", ""]
 
 
+def _paper_cell(value: tuple) -> str:
+    mean, std = value
+    return f"{mean:.1f}" + (f" ± {std:.1f}" if std is not None else "")
+
+
 def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     """``results_dir``/TABLE.md and its PNGs; ``longer_dirs`` hold the same grid at longer budgets."""
     found = load_results(results_dir)
@@ -344,9 +381,9 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
             if runs:
                 mean, std = _mean_std([r["final_normalized_score_mean"] for r in runs])
                 ours = f"**{mean:.1f}** ± {std:.1f} (n={len(runs)})" if len(runs) > 1 else f"**{mean:.1f}** (n=1)"
-            ref = f"{paper[method][0]:.1f} ± {paper[method][1]:.1f}" if method in paper else "—"
+            ref = _paper_cell(paper[method]) if method in paper else "—"
             cells.append(f"{ours} · paper {ref}")
-        tsrl = f"{paper['tsrl'][0]:.1f} ± {paper['tsrl'][1]:.1f}" if "tsrl" in paper else "—"
+        tsrl = _paper_cell(paper["tsrl"]) if "tsrl" in paper else "—"
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
@@ -749,7 +786,7 @@ def _baseline_defaults(method: str, task: str) -> dict:
     """``benchmarks/baselines.py``'s hyperparameters for ``method`` on ``task`` (none for TELS)."""
     if method not in BASELINES:
         return {}
-    return {**HYPERPARAMETERS[method], **(MAZE_HYPERPARAMETERS.get(method, {}) if is_maze(task) else {})}
+    return {**HYPERPARAMETERS[method], **domain_hyperparameters(method, task)}
 
 
 def _link(folder: Path, results_dir: Path) -> str:

@@ -158,7 +158,8 @@ def train(cfg: DictConfig) -> dict:
     # Algorithm 1, lines 1-4: train the TS-IDM (Eq. 3-7).
     tsidm = make_stage1(cfg, data, run, run_dir, logger, pretrained)
     # Line 6: encode the dataset with the frozen φ_s; build V (Eq. 8), π_g (Eq. 9/10), the actor (Eq. 11).
-    env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1)  # the episodes as one batch
+    env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1,  # the episodes as one batch
+                         info_keys=task.info_keys)
     stage2 = make_stage2(cfg, data, tsidm, env.action_spec_unbatched)
     start = 0
     if run.resumes("policy"):
@@ -261,7 +262,7 @@ def train_seeds(cfg: DictConfig) -> dict:
         seed_run.wall["tsidm_s"] = run.wall.get("tsidm_s", 0.0)
 
     # Line 6 and the stage-2 networks, per seed on its own RNG stream; the updates are stacked.
-    env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1)
+    env = make_eval_envs(task.env_id, cfg.eval.episodes if cfg.eval.batched else 1, info_keys=task.info_keys)
     rng = SeedRNG(len(seeds))
     stages = []
     for k, (c, data, tsidm) in enumerate(zip(configs, datas, tsidms)):

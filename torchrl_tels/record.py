@@ -8,7 +8,7 @@ from typing import Mapping
 
 from torchrl.record.loggers import CSVLogger
 
-__all__ = ["RunLogger", "second_half_mean", "write_results", "write_seeds_summary"]
+__all__ = ["RunLogger", "final_success_rate", "second_half_mean", "write_results", "write_seeds_summary"]
 
 WANDB_MODES = ("online", "offline", "disabled")
 
@@ -106,6 +106,12 @@ def second_half_mean(evaluations: list[Mapping]) -> float:
     return sum(e["score"] for e in later) / len(later) if later else float("nan")
 
 
+def final_success_rate(evaluations: list[Mapping]) -> float | None:
+    """The mean success rate (D4RL's criterion, e.g. Adroit) over ``evaluations``; ``None`` without one."""
+    rates = [e.get("success_rate") for e in evaluations]
+    return None if not rates or None in rates else sum(rates) / len(rates)
+
+
 def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_steps: int, policy_steps: int) -> dict:
     """Writes ``results.json`` and the PNG plots of a finished run; returns the results.
 
@@ -142,6 +148,7 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
         "final_normalized_score_mean": final.mean().item(),
         "final_normalized_score_std": final.std(unbiased=False).item(),
         "final_over_last_n_evaluations": len(last),
+        "final_success_rate_mean": final_success_rate(last),
         "second_half_score_mean": second_half_mean(evaluations),
         "evaluations": evaluations,
         "monitor": monitor_summary,

@@ -40,7 +40,7 @@ from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
 from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, rollout_episodes, Task,
                                TSIDMEncoderTransform)
-from torchrl_tels.envs.evaluation import eval_env_spaces
+from torchrl_tels.envs.evaluation import episode_success, eval_env_spaces, success_rate
 from torchrl_tels.envs.monitor import running_mean
 from torchrl_tels.errors import DatasetError, MonitorError, TaskError
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
@@ -743,11 +743,12 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     fraction of flagged steps.
     """
     actor.eval()
-    returns, lengths, behaviour, monitored = [], [], [], []
+    returns, lengths, successes, behaviour, monitored = [], [], [], [], []
     for rollout in rollout_episodes(actor, env, cfg.eval.episodes, max_steps=cfg.eval.max_steps,
                                     seed=cfg.seed * 100_000 + step, compile_options=compile_options(cfg)):
         returns.append(rollout["next", "reward"].sum().item())
         lengths.append(rollout.shape[-1])
+        successes.append(episode_success(rollout, task.success_steps))
         behaviour.append(rollout_statistics(rollout))
         if monitor is not None:
             monitored.append(rollout.select("observation", "action", ("next", "observation")))
@@ -760,7 +761,7 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
               "realized_error_ratio": sum(realized) / len(realized) if realized else None,
               "frozen": is_frozen(guide_step, action_std, latent_stats["latent_step_rms"],
                                   latent_stats["data_action_std"]),
-              "off_data": is_off_data(guide_step, latent_stats["latent_step_rms"])}
+              "off_data": is_off_data(guide_step, latent_stats["latent_step_rms"]), **success_rate(successes)}
     if monitor is not None:
         result["monitor"] = _monitor_record(monitor, monitored)
     return result
@@ -768,7 +769,7 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
 
 def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:
     """The scalars of one :func:`evaluate` record that a logger plots: the score and the behaviour diagnostics."""
-    keys = ("score", "guide_step_rms", "realized_error_ratio", "action_std")
+    keys = ("score", "success_rate", "guide_step_rms", "realized_error_ratio", "action_std")
     return {f"{prefix}eval/{k}": float(evaluation[k]) for k in keys if evaluation.get(k) is not None}
 
 

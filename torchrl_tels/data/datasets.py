@@ -83,8 +83,9 @@ D4RL_OPTIONAL_KEYS: tuple[str, ...] = ("timeouts",)
 #: The default dataset, reached by the aliases ``"embedded"``/``"default"``.
 EMBEDDED_DATASET = "hopper-medium-v2-10k"
 #: Datasets shipped in ``torchrl_tels/data/assets`` (``<name>.npz``): the
-#: reduced-size D4RL samples of the paper's Table 1, so that every Table 1 task
-#: runs from an installed package alone (attribution in ``ATTRIBUTION.md``).
+#: reduced-size D4RL samples of the paper's Table 1 and the Adroit sets of its
+#: Tables 1 and 6 rebuilt from DAPG, so that each runs from an installed package
+#: alone (attribution in ``ATTRIBUTION.md``).
 EMBEDDED_DATASETS: tuple[str, ...] = (
     "hopper-medium-v2-10k",
     "hopper-medium-replay-v2-10k",
@@ -92,6 +93,11 @@ EMBEDDED_DATASETS: tuple[str, ...] = (
     "walker2d-medium-v2-10k",
     "antmaze-umaze-v0-10k",
     "antmaze-umaze-diverse-v0-10k",
+    "door-human-v1",
+    "pen-expert-v1-10k",
+    "door-expert-v1-10k",
+    "hammer-expert-v1-10k",
+    "relocate-expert-v1-10k",
 )
 _EMBEDDED_ALIASES = ("embedded", "default")
 

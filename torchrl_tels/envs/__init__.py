@@ -1,6 +1,6 @@
 """Evaluation environments and tasks: the one home of task names, env ids and reference scores.
 
-Importing this package registers every task the library ships (D4RL locomotion
+Importing this package registers every task the library ships (D4RL locomotion, Adroit
 and AntMaze, PointMaze, the point-mass task) and their Gymnasium environments.
 """
 from torchrl_tels.envs.tasks import (
@@ -11,8 +11,9 @@ from torchrl_tels.envs.tasks import (
     register_task,
     Task,
 )
-from torchrl_tels.envs import antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
+from torchrl_tels.envs import adroit, antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
 from torchrl_tels.envs.evaluation import (
+    evaluate_episodes,
     evaluate_policy,
     make_eval_env,
     make_eval_envs,
@@ -28,6 +29,7 @@ __all__ = [
     "TSIDMEncoderTransform",
     "DeploymentMonitor",
     "Task",
+    "evaluate_episodes",
     "evaluate_policy",
     "get_task",
     "list_tasks",

@@ -8,28 +8,44 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, GymEnv, GymWrapper
+from torchrl.envs.gym_like import default_info_dict_reader
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_tels.compile import compile_update
 from torchrl_tels.errors import TaskError
 
-__all__ = ["make_eval_env", "make_eval_envs", "evaluate_policy", "rollout_episodes", "PolicyOnDevice"]
+__all__ = ["episode_success", "evaluate_episodes", "make_eval_env", "make_eval_envs", "evaluate_policy",
+           "success_rate", "rollout_episodes", "PolicyOnDevice"]
 
 
 def _cannot_create(env_id: str, err: Exception) -> TaskError:
     return TaskError(f"cannot create the evaluation env {env_id!r}: {type(err).__name__}: {err}")
 
 
-def make_eval_env(env_id: str, **kwargs) -> GymEnv:
-    """A TorchRL ``GymEnv`` for ``env_id`` (e.g. ``"Hopper-v4"``), with a clear error for unknown ids."""
+def make_eval_env(env_id: str, info_keys: tuple[str, ...] = (), **kwargs) -> GymEnv:
+    """A TorchRL ``GymEnv`` for ``env_id`` (e.g. ``"Hopper-v4"``), with a clear error for unknown ids.
+
+    The entries of ``info_keys`` that the env's ``info`` holds after a step (``"success"`` for the
+    Adroit tasks: :attr:`~torchrl_tels.envs.Task.info_keys`) are written to each step's ``"next"``
+    tensordict, as a batch of envs (:func:`make_eval_envs`) writes every info entry."""
     try:
-        return GymEnv(env_id, **kwargs)
+        env = GymEnv(env_id, **kwargs)
     except Exception as err:
         raise _cannot_create(env_id, err) from None
+    if info_keys:
+        # Which entries the env's info has, from one step of the Gymnasium env; every evaluation
+        # episode starts with a seeded reset, so this step changes none of them.
+        env._env.reset()
+        _, _, _, _, info = env._env.step(env._env.action_space.sample())
+        keys = [key for key in info_keys if key in info]
+        if keys:
+            env.set_info_dict_reader(default_info_dict_reader(keys))
+    return env
 
 
-def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] | None = None) -> EnvBase:
+def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] | None = None,
+                   info_keys: tuple[str, ...] = ()) -> EnvBase:
     """``copies`` evaluation envs stepped together (batch size ``[copies]``), passed through ``wrap``
     (e.g. into a ``TransformedEnv``), or :func:`make_eval_env` itself when ``copies`` is 1.
     :func:`rollout_episodes` runs one episode on each copy, with one policy call per step for all of them.
@@ -41,7 +57,8 @@ def make_eval_envs(env_id: str, copies: int, wrap: Callable[[EnvBase], EnvBase] 
     if copies < 1:
         raise ValueError(f"make_eval_envs: copies must be >= 1, got {copies}.")
     if copies == 1:
-        return make_eval_env(env_id) if wrap is None else wrap(make_eval_env(env_id))
+        env = make_eval_env(env_id, info_keys=info_keys)
+        return env if wrap is None else wrap(env)
     import gymnasium as gym
 
     eval_env_spaces(env_id)  # an unknown id fails here, with the clear error
@@ -164,6 +181,38 @@ def _device_of(policy) -> torch.device:
     return parameter.device if parameter is not None else torch.device("cpu")
 
 
+def episode_success(rollout: TensorDictBase, success_steps: int | None) -> bool | None:
+    """Whether an episode succeeded by D4RL's criterion: the env's ``info["success"]`` on more than
+    ``success_steps`` of its steps (Adroit: 25, pen: 20). ``None`` for a task without the criterion, or
+    a rollout without the ``("next", "success")`` entry."""
+    if success_steps is None or ("next", "success") not in rollout.keys(True):
+        return None
+    return int(rollout["next", "success"].sum()) > success_steps
+
+
+def evaluate_episodes(
+    policy: TensorDictModuleBase,
+    env: EnvBase,
+    episodes: int,
+    *,
+    seed: int,
+    max_steps: int = 1000,
+    success_steps: int | None = None,
+) -> list[dict]:
+    """``{"return", "length", "success"}`` of each of ``episodes`` deterministic episodes
+    (:func:`rollout_episodes`); ``"success"`` is :func:`episode_success` (``None`` without a criterion)."""
+    return [{"return": rollout["next", "reward"].sum().item(), "length": rollout.shape[-1],
+             "success": episode_success(rollout, success_steps)}
+            for rollout in rollout_episodes(policy, env, episodes, seed=seed, max_steps=max_steps)]
+
+
+def success_rate(successes: list) -> dict:
+    """``{"success_rate": ...}`` over episodes' :func:`episode_success`; empty where any is ``None``."""
+    if not successes or any(s is None for s in successes):
+        return {}
+    return {"success_rate": sum(successes) / len(successes)}
+
+
 def evaluate_policy(
     policy: TensorDictModuleBase,
     env: EnvBase,
@@ -177,8 +226,6 @@ def evaluate_policy(
 
     The episodes are those of :func:`rollout_episodes` with the same arguments.
     """
-    returns, lengths = [], []
-    for rollout in rollout_episodes(policy, env, episodes, seed=seed, max_steps=max_steps):
-        returns.append(rollout["next", "reward"].sum().item())
-        lengths.append(rollout.shape[-1])
+    results = evaluate_episodes(policy, env, episodes, seed=seed, max_steps=max_steps)
+    returns, lengths = [r["return"] for r in results], [r["length"] for r in results]
     return (returns, lengths) if with_lengths else returns

@@ -47,6 +47,8 @@ class Task:
         max_episode_steps: episode limit used for evaluation.
         dataset: source to pass to :func:`~torchrl_tels.data.load_dataset`
             (defaults to ``name``).
+        success_steps: D4RL's success criterion, where the task has one: an episode succeeds when
+            the env's ``info["success"]`` holds on more than this many steps (Adroit).
     """
 
     name: str
@@ -57,6 +59,12 @@ class Task:
     action_dim: int | None
     max_episode_steps: int | None = None
     dataset: str | None = None
+    success_steps: int | None = None
+
+    @property
+    def info_keys(self) -> tuple[str, ...]:
+        """The env ``info`` entries an evaluation records: ``"success"`` where the task has a success criterion."""
+        return ("success",) if self.success_steps is not None else ()
 
     @property
     def has_reference_scores(self) -> bool:
