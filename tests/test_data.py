@@ -43,7 +43,16 @@ TABLE1_NAMES = [
     "halfcheetah-medium-v2-10k",
     "walker2d-medium-v2-10k",
     "antmaze-umaze-v0-10k",
+    "antmaze-umaze-diverse-v0-10k",
 ]
+#: the Adroit sets of Tables 1 and 6, shipped under their D4RL names; shared/datasets/adroit/ holds them as files
+ADROIT_NAMES = {
+    "door-human-v1": "door-human",
+    "pen-expert-v1-10k": "pen-expert-10k",
+    "door-expert-v1-10k": "door-expert-10k",
+    "hammer-expert-v1-10k": "hammer-expert-10k",
+    "relocate-expert-v1-10k": "relocate-expert-10k",
+}
 ASSETS = importlib.resources.files("torchrl_tels.data") / "assets"
 
 
@@ -192,10 +201,10 @@ def test_embedded_dataset_matches_asset():
 
 def test_shipped_names_are_the_asset_files():
     shipped = sorted(p.name.removesuffix(".npz") for p in ASSETS.iterdir() if p.name.endswith(".npz"))
-    assert shipped == sorted(EMBEDDED_DATASETS) == sorted(TABLE1_NAMES)
+    assert shipped == sorted(EMBEDDED_DATASETS) == sorted([*TABLE1_NAMES, *ADROIT_NAMES])
 
 
-@pytest.mark.parametrize("name", TABLE1_NAMES)
+@pytest.mark.parametrize("name", [*TABLE1_NAMES, *ADROIT_NAMES])
 def test_shipped_name_loads_without_shared_folder(name, monkeypatch):
     # No shared folder anywhere, and fail loudly if load_dataset even asks for it.
     monkeypatch.setenv("TORCHRL_TELS_SHARED_DATASETS", "/nonexistent/shared/datasets")
@@ -206,7 +215,8 @@ def test_shipped_name_loads_without_shared_folder(name, monkeypatch):
     monkeypatch.setattr(datasets_module, "shared_datasets_dir", no_shared)
     data = load_dataset(name)
 
-    shared_file = SHARED_D4RL / f"{name}.npz"
+    shared_file = (SHARED_D4RL.parent / "adroit" / f"{ADROIT_NAMES[name]}.npz" if name in ADROIT_NAMES
+                   else SHARED_D4RL / f"{name}.npz")
     if not shared_file.is_file():
         pytest.skip(f"{shared_file} absent: loaded, but nothing to compare with")
     with np.load(shared_file) as raw:
