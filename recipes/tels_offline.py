@@ -58,6 +58,7 @@ from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  #
 from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, RunFolderClaim  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
     check_same_stage1_length,
+    guide_weight_diagnostics,
     evaluate,
     evaluation_scalars,
     fit_tsidm_seeds,
@@ -196,7 +197,8 @@ def train(cfg: DictConfig) -> dict:
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
                       metadata={"results": str(run_dir / "results.json")})
     # Stored with the score: a low score with a low inverse error points at the guide, a high one at the TS-IDM.
-    diagnostics = {**stage2.latent_stats, **action_chain_statistics(stage2.actor, data)}
+    diagnostics = {**stage2.latent_stats, **action_chain_statistics(stage2.actor, data),
+                   **guide_weight_diagnostics(cfg, stage2, task)}
     results = write_results(cfg, run, task, tsidm.metadata.get("beta"), diagnostics, run_dir,
                             tsidm_steps=tsidm_steps(cfg, len(data)), policy_steps=cfg.policy.steps - start)
     run.stage, run.step = "done", cfg.policy.steps
@@ -315,7 +317,8 @@ def train_seeds(cfg: DictConfig) -> dict:
                           mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
                           metadata={"results": str(Path(c.run_dir) / "results.json")})
         with rng.use(k):  # an actor acting with dropout draws from its seed's own stream
-            diagnostics = {**stage.latent_stats, **action_chain_statistics(stage.actor, data)}
+            diagnostics = {**stage.latent_stats, **action_chain_statistics(stage.actor, data),
+                           **guide_weight_diagnostics(c, stage, task)}
         results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), diagnostics,
                                      Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(data)),
                                      policy_steps=cfg.policy.steps - start))

@@ -1,6 +1,8 @@
 """LatentExpectileLoss (Eq. 8), TSymGuideLoss (Eq. 9, 10) and the TELS actor (Eq. 11)."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -204,6 +206,34 @@ def test_stochastic_advantage_matches_td0():
         adv = (td["next", "reward"].squeeze(-1) + 0.99 * not_term * value.module(td["next", "latent"]).squeeze(-1)
                - value.module(td["latent"]).squeeze(-1))
     torch.testing.assert_close(out["advantage"], adv.mean())
+
+
+def test_awr_weight_statistics_match_a_direct_computation():
+    from torchrl_tels.diagnostics import awr_weight_statistics, maze_cells
+
+    tsidm = small_tsidm()
+    loss, _, value = make_guide_loss("stochastic", tsidm, alpha=3.0, max_weight=5.0)
+    td = latent_batch(tsidm)
+    xy = torch.randn(B, 2) * 6
+    stats = awr_weight_statistics(loss, td, maze_cells(xy), chunk=5)  # chunks smaller than the batch
+    with torch.no_grad():
+        not_term = (~td["next", "terminated"]).float().squeeze(-1)
+        v = value.module(td["latent"]).squeeze(-1)
+        adv = td["next", "reward"].squeeze(-1) + 0.99 * not_term * value.module(td["next", "latent"]).squeeze(-1) - v
+    raw = [math.exp(3.0 * a) for a in adv.tolist()]
+    w = [min(x, 5.0) for x in raw]
+    assert stats["effective_sample_fraction"] == pytest.approx(sum(w) ** 2 / (len(w) * sum(x * x for x in w)),
+                                                               rel=1e-5)
+    assert stats["clipped_fraction"] == pytest.approx(sum(x > 5.0 for x in raw) / len(raw))
+    assert (stats["value_min"], stats["value_max"]) == pytest.approx((v.min().item(), v.max().item()), rel=1e-5)
+    cells = [(math.floor(x / 4 + 0.5), math.floor(y / 4 + 0.5)) for x, y in xy.tolist()]
+    for cell in set(cells):
+        mine = [i for i, c in enumerate(cells) if c == cell]
+        share = stats["regions"][f"{cell[0]},{cell[1]}"]
+        assert share["data_share"] == pytest.approx(len(mine) / len(cells))
+        assert share["weight_share"] == pytest.approx(sum(w[i] for i in mine) / sum(w), rel=1e-5)
+    out = loss(td)  # the batch's own reading, logged while training
+    assert out["effective_sample_fraction"].item() == pytest.approx(stats["effective_sample_fraction"], rel=1e-5)
 
 
 # -------------------------------------------------------------- Eq. (11)

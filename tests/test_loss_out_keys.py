@@ -18,7 +18,7 @@ TSIDM_FULL = ["loss_state_rec", "loss_action_rec", "loss_dyn", "loss_ode", "loss
               "ell_rec", "ell_dyn", "ell_ode", "ell_tsym", "ell_total", "ell_sum", "latent_rms", "latent_step_rms"]
 GUIDE_DETERMINISTIC = ["loss_guide_value", "loss_guide_state", "loss_tsym",
                        "lambda_alpha", "guide_value", "guide_step_rms", "tsym_to_state_ratio"]
-GUIDE_STOCHASTIC = ["loss_guide_awr", "loss_tsym", "advantage", "clipped_weight_fraction"]
+GUIDE_STOCHASTIC = ["loss_guide_awr", "loss_tsym", "advantage", "clipped_weight_fraction", "effective_sample_fraction"]
 
 
 def tsidm_case():
@@ -240,7 +240,8 @@ def test_tsidm_out_keys_are_read_from_the_options_not_frozen_at_first_use():
          ["loss_guide_value", "loss_guide_state", "loss_reach", "loss_tsym",
           "lambda_alpha", "guide_value", "guide_step_rms", "tsym_to_state_ratio"]),
         ("stochastic", {}, GUIDE_STOCHASTIC),
-        ("stochastic", {"tsym_regularizer": False}, ["loss_guide_awr", "advantage", "clipped_weight_fraction"]),
+        ("stochastic", {"tsym_regularizer": False},
+         ["loss_guide_awr", "advantage", "clipped_weight_fraction", "effective_sample_fraction"]),
     ],
 )
 def test_guide_out_keys_follow_the_mode_and_terms(mode, options, expected):

@@ -19,8 +19,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY, LatentActionHead, StateEncoder
 from torchrl_tels.modules.tsidm import TSIDM
 
-__all__ = ["latent_statistics", "rollout_statistics", "action_chain_statistics", "is_frozen", "is_off_data",
-           "FREEZE_RATIO", "OFF_DATA_RATIO"]
+__all__ = ["latent_statistics", "rollout_statistics", "action_chain_statistics", "awr_weight_statistics", "is_frozen",
+           "is_off_data", "maze_cells", "FREEZE_RATIO", "OFF_DATA_RATIO"]
 
 #: A rollout's proposals are "off the data" when their RMS latent step exceeds the data's this many times.
 OFF_DATA_RATIO = 4.0
@@ -144,3 +144,38 @@ def is_off_data(guide_step_rms: float, data_step_rms: float, ratio: float = OFF_
     """True when the guide proposes latent steps far larger than any the data takes: the opposite
     failure to a freeze, where Eq. (11) asks h_inv for transitions it never saw."""
     return guide_step_rms > ratio * data_step_rms
+
+
+def maze_cells(xy: torch.Tensor, cell_size: float = 4.0) -> torch.Tensor:
+    """The maze cell of each (x, y), as integer (column, row) pairs: D4RL's AntMaze scales each maze cell to
+    4 units, with the start cell centred on the origin."""
+    return torch.floor(xy / cell_size + 0.5).long()
+
+
+@torch.no_grad()
+def awr_weight_statistics(guide_loss, encoded: TensorDictBase, regions: torch.Tensor | None = None,
+                          chunk: int = 4096) -> dict:
+    """Where Eq. (10)'s weights put the guide's attention, over every transition of the encoded data.
+
+    ``effective_sample_fraction`` (Kish's ESS over n: 1 when all weigh the same), ``clipped_fraction``
+    (weights at the clip), the advantage's mean, V's range on the data (``value_min``/``value_max``),
+    and with ``regions`` (an (N, k) integer label per transition, e.g. :func:`maze_cells`) each region's
+    share of the data and of the total weight.
+    """
+    from torchrl_tels.objectives.tsym_guide import effective_sample_fraction
+
+    parts = [guide_loss.awr_weights(encoded[i:i + chunk]) for i in range(0, len(encoded), chunk)]
+    advantage, weight, clipped = (torch.cat(p).float().reshape(-1) for p in zip(*parts))
+    values = torch.cat([guide_loss._value(encoded[i:i + chunk].get(guide_loss.tensor_keys.latent))
+                        for i in range(0, len(encoded), chunk)]).float()
+    stats = {"effective_sample_fraction": effective_sample_fraction(weight).item(),
+             "clipped_fraction": clipped.float().mean().item(), "advantage_mean": advantage.mean().item(),
+             "value_min": values.min().item(), "value_max": values.max().item(), "transitions": len(weight)}
+    if regions is not None:
+        labels, index = torch.unique(regions.reshape(len(weight), -1), dim=0, return_inverse=True)
+        data_share = torch.bincount(index, minlength=len(labels)).double() / len(weight)
+        weight_share = torch.zeros(len(labels), dtype=torch.float64).index_add_(0, index, weight.double())
+        weight_share /= weight_share.sum()
+        stats["regions"] = {",".join(str(int(v)) for v in label): {"data_share": d.item(), "weight_share": w.item()}
+                            for label, d, w in zip(labels, data_share, weight_share)}
+    return stats

@@ -158,7 +158,8 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
             "guide_history": {k: v for k, v in run.policy_history.items()
                               if k in ("guide/tsym_to_state_ratio", "guide/guide_step_rms", "guide/loss_tsym",
                                        "guide/loss_guide_state", "guide/loss_reach", "guide/guide_value",
-                                       "value/state_value")},
+                                       "guide/advantage", "guide/clipped_weight_fraction",
+                                       "guide/effective_sample_fraction", "value/state_value")},
         },
         "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall.get("eval_s", 0.0)},
         "steps_per_s": {

@@ -37,7 +37,8 @@ from torchrl_tels.config import (check_same_run, monitor_fit_options, resolve_de
 from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
                                subset_dataset, trajectory_ids)
 from torchrl_tels.data.datasets import recorded_env_id
-from torchrl_tels.diagnostics import is_frozen, is_off_data, latent_statistics, rollout_statistics
+from torchrl_tels.diagnostics import (awr_weight_statistics, is_frozen, is_off_data, latent_statistics, maze_cells,
+                                     rollout_statistics)
 from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, rollout_episodes, Task,
                                TSIDMEncoderTransform)
 from torchrl_tels.envs.evaluation import episode_success, eval_env_spaces, success_rate
@@ -765,6 +766,18 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     if monitor is not None:
         result["monitor"] = _monitor_record(monitor, monitored)
     return result
+
+
+def guide_weight_diagnostics(cfg, stage2: "Stage2", task: Task) -> dict:
+    """For the stochastic guide (Eq. 10), ``{"awr_weights": ...}``: where its weights fall over the whole
+    encoded data (:func:`~torchrl_tels.diagnostics.awr_weight_statistics`), per maze cell on a maze task
+    (the (x, y) columns ``dataset.delete_xy``); empty for the deterministic guide."""
+    if cfg.guide.mode != "stochastic":
+        return {}
+    encoded = stage2.buffer.storage[:]
+    regions = (maze_cells(encoded["observation"][:, list(cfg.dataset.delete_xy)])
+               if "maze" in task.name.lower() else None)
+    return {"awr_weights": awr_weight_statistics(stage2.guide_loss, encoded, regions)}
 
 
 def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:

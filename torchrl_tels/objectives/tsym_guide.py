@@ -22,6 +22,13 @@ __all__ = ["TSymGuideLoss", "value_scale"]
 GUIDE_MODES = ("deterministic", "stochastic")
 
 
+def effective_sample_fraction(weight: torch.Tensor) -> torch.Tensor:
+    r"""Kish's effective sample size of weights over their count, :math:`(\sum w)^2 / (n \sum w^2)`:
+    1 when every sample weighs the same, :math:`1/n` when one sample carries all the weight."""
+    weight = weight.detach().reshape(-1)
+    return weight.sum().square() / (weight.numel() * weight.square().sum()).clamp_min(1e-30)
+
+
 def value_scale(alpha: float, data_values: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
     r""":math:`\lambda_\alpha = \alpha / [\sum_i |V(\phi_s(s_i))| / N]` over the batch (Appendix C.3)."""
     return alpha / data_values.abs().mean().clamp_min(eps)
@@ -224,7 +231,7 @@ class TSymGuideLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
                 extra.append("tsym_to_state_ratio")
         else:
             keys = ["loss_guide_awr"]
-            extra = ["advantage", "clipped_weight_fraction"]
+            extra = ["advantage", "clipped_weight_fraction", "effective_sample_fraction"]
         return keys + (["loss_tsym"] if self.tsym_regularizer else []) + extra
 
     # pieces ----------------------------------------------------------------
@@ -317,13 +324,7 @@ class TSymGuideLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
         keys = self.tensor_keys
         latent = tensordict.get(keys.latent)
         next_latent = tensordict.get(("next", keys.latent))
-        with torch.no_grad():
-            td = tensordict.select(keys.latent, "next", strict=False)
-            target = self.value_estimator.value_estimate(td, target_params=self.value_network_params).squeeze(-1)
-            advantage = target - self._value(latent)
-            weight = torch.exp(self.alpha * advantage)
-            clipped = weight > self.max_weight
-            weight = weight.clamp_max(self.max_weight)
+        advantage, weight, clipped = self.awr_weights(tensordict)
         td = tensordict.select(*self.guide_network.in_keys, strict=False)
         with self.guide_network_params.to_module(self.guide_network, preserve_module_state=False):
             dist = self.guide_network.get_dist(td)
@@ -334,7 +335,20 @@ class TSymGuideLoss(SelectableOutKeysMixin, LazyInKeysMixin, LossModule):
                 out["loss_tsym"] = self.tsym_loss(latent, dist.rsample())
         out["advantage"] = advantage.mean()
         out["clipped_weight_fraction"] = clipped.float().mean()
+        out["effective_sample_fraction"] = effective_sample_fraction(weight)
         return TensorDict(out, batch_size=[])
+
+    @torch.no_grad()
+    def awr_weights(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        r"""Eq. (10)'s weights on a batch: the advantage :math:`A = r + \gamma V(z') - V(z)` (the TD(0)
+        target through the value estimator), :math:`\min(\exp(\alpha A), w_{max})` and where the clip bit."""
+        keys = self.tensor_keys
+        td = tensordict.select(keys.latent, "next", strict=False)
+        target = self.value_estimator.value_estimate(td, target_params=self.value_network_params).squeeze(-1)
+        advantage = target - self._value(tensordict.get(keys.latent))
+        weight = torch.exp(self.alpha * advantage)
+        clipped = weight > self.max_weight
+        return advantage, weight.clamp_max(self.max_weight), clipped
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
         return make_td0_value_estimator(self, value_type, hyperparams)
