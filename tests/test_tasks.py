@@ -32,7 +32,7 @@ def clean_registry(monkeypatch):
         ("antmaze-umaze-v0", "torchrl_tels/AntMazeUMazeD4RL-v0", 0.0, 1.0, 29, 8),
         ("mujoco/hopper/medium-v0", "Hopper-v5", -20.272305, 3234.3, 11, 3),
         ("mujoco/walker2d/expert-v0", "Walker2d-v5", 1.629008, 4592.3, 17, 6),
-        ("D4RL/antmaze/umaze-v1", "AntMaze_UMaze-v4", 0.0, 1.0, 31, 8),
+        ("D4RL/antmaze/umaze-v1", "torchrl_tels/AntMazeUMazeFixed-v0", 0.0, 1.0, 31, 8),
     ],
 )
 def test_registered_tasks(name, env_id, ref_min, ref_max, obs_dim, act_dim):

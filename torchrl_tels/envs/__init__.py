@@ -12,6 +12,7 @@ from torchrl_tels.envs.tasks import (
     Task,
 )
 from torchrl_tels.envs import adroit, antmaze, point_mass, pointmaze  # noqa: E402,F401  (register their envs and tasks)
+from torchrl_tels.envs import antmaze_stock  # noqa: E402,F401  (after pointmaze: its start and goal cells)
 from torchrl_tels.envs.evaluation import (
     evaluate_episodes,
     evaluate_policy,

@@ -245,19 +245,7 @@ def _register_defaults() -> None:
                     max_episode_steps=700,
                 )
             )
-        # Minari's dict observation flattened by load_dataset's default:
-        # achieved_goal (2) + desired_goal (2) + observation (27).
-        register_task(
-            Task(
-                f"D4RL/antmaze/{maze}-v1",
-                "AntMaze_UMaze-v4",
-                ref_min,
-                ref_max,
-                31,
-                8,
-                max_episode_steps=700,
-            )
-        )
+    # Minari's D4RL/antmaze/<set>-v1 ids: torchrl_tels.envs.antmaze_stock.
 
 
 _register_defaults()
