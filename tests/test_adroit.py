@@ -12,8 +12,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
+from torchrl_tels.collection import load_dapg_expert
 from torchrl_tels.data import load_dataset
 from torchrl_tels.envs import evaluate_episodes, get_task, make_eval_envs, normalized_score
 from torchrl_tels.envs.adroit import ADROIT_TASKS, adroit_env_id
@@ -87,16 +89,7 @@ def test_reward_is_d4rls_formula(task):
 
 
 def dapg_expert(task: str):
-    """The DAPG expert's mean action as a TorchRL actor (the formula of shared/datasets/adroit/README.md)."""
-    p = {k: torch.as_tensor(v, dtype=torch.float32)
-         for k, v in np.load(SHARED_ADROIT / "policies" / f"{task}-v0-dapg-policy.npz").items()}
-
-    def act(obs):
-        x = (obs.float() - p["in_shift"]) / (p["in_scale"] + 1e-8)
-        h = torch.tanh(torch.tanh(x @ p["W0"].T + p["b0"]) @ p["W1"].T + p["b1"])
-        return ((h @ p["W2"].T + p["b2"]) * p["out_scale"] + p["out_shift"]).clamp(-1, 1)
-
-    return TensorDictModule(act, in_keys=["observation"], out_keys=["action"])
+    return load_dapg_expert(SHARED_ADROIT / "policies" / f"{task}-v0-dapg-policy.npz")
 
 
 @requires_shared
@@ -155,3 +148,14 @@ def test_recipe_smoke_run_on_door_human(tmp_path):
     last = results["evaluations"][-1]
     assert last["lengths"] == [200, 200]  # D4RL's door episodes
     assert 0.0 <= results["final_success_rate_mean"] <= 1.0 and "success_rate" in last
+
+
+@requires_shared
+def test_dapg_policy_is_the_readme_formula():
+    arrays = dict(np.load(SHARED_ADROIT / "policies" / "door-v0-dapg-policy.npz"))
+    obs = np.random.default_rng(0).normal(size=(5, 39)).astype(np.float32)
+    x = (obs - arrays["in_shift"]) / (arrays["in_scale"] + 1e-8)
+    h = np.tanh(np.tanh(x @ arrays["W0"].T + arrays["b0"]) @ arrays["W1"].T + arrays["b1"])
+    expected = np.clip((h @ arrays["W2"].T + arrays["b2"]) * arrays["out_scale"] + arrays["out_shift"], -1, 1)
+    out = dapg_expert("door")(TensorDict(observation=torch.as_tensor(obs), batch_size=[5]))["action"]
+    np.testing.assert_allclose(out.numpy(), expected, rtol=1e-5, atol=1e-5)
