@@ -103,3 +103,17 @@ def test_sweep_jobs_get_their_own_folders_and_resume(tmp_path):
     assert out.count("already finished; nothing to resume") == 2
     assert [(job / "results.json").stat().st_mtime_ns for job in jobs] == stamps
     assert sorted(p for p in sweep.iterdir() if p.is_dir()) == jobs  # resume=true is not in the names
+
+
+def test_sweep_through_the_local_submitit_launcher(tmp_path):
+    """hydra/launcher=local: the cluster launcher's code path, each job a process of its own."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    sweep = tmp_path / "sweep"
+    code, err = finish(start("hydra/launcher=local", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path,
+                             multirun=True))
+    assert code == 0, err[-2000:]
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert [p.name.split("_")[0] for p in jobs] == ["0", "1"]
+    assert [json.loads((job / "results.json").read_text())["seed"] for job in jobs] == [1, 2]
+    # submitit ran each job apart: one folder of logs per job
+    assert len([p for p in (sweep / ".submitit").iterdir() if p.name.isdigit()]) == 2
