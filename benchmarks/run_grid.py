@@ -470,14 +470,14 @@ def _interval_estimates(matrices: dict) -> dict:
 
     One seed per task leaves the bootstrap nothing to resample, so such a matrix gets no interval
     (low and high NaN) rather than a point posing as one."""
-    from benchmarks import aggregate
+    from torchrl_tels import stats
 
     def estimate(scores, statistic):
         if scores.shape[0] == 1:
             return statistic(scores), math.nan, math.nan
-        return aggregate.stratified_bootstrap_ci(scores, statistic)
+        return stats.stratified_bootstrap_ci(scores, statistic)
 
-    return {label: [estimate(scores, statistic) for statistic in (aggregate.iqm, aggregate.mean)]
+    return {label: [estimate(scores, statistic) for statistic in (stats.iqm, stats.mean)]
             for label, scores in matrices.items()}
 
 
@@ -510,7 +510,7 @@ def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None
         return []
     lines = ["", "## Aggregate over the four shared sets", "",
              "Interquartile mean (IQM) and mean of the final scores over tasks × seeds, with 95 % "
-             "stratified-bootstrap intervals (2,000 resamples of each task's seeds; `benchmarks/aggregate.py`, "
+             "stratified-bootstrap intervals (2,000 resamples of each task's seeds; `torchrl_tels/stats.py`, "
              "rliable's definitions). Only seeds present on all four sets enter; a row without a budget is at "
              "the grid's (see the table above).", "",
              *_AGGREGATE_HEADER]
@@ -801,7 +801,7 @@ def _aggregate_plot(matrices: dict, estimates: dict, folder: Path, filename: str
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from benchmarks import aggregate
+    from torchrl_tels import stats
 
     fig, (ax_ci, ax_profile) = plt.subplots(1, 2, figsize=(10, 3.8))
     methods = list(matrices)
@@ -817,7 +817,7 @@ def _aggregate_plot(matrices: dict, estimates: dict, folder: Path, filename: str
     ax_ci.legend(fontsize=8)
     taus = np.linspace(0, max(float(x.max()) for x in matrices.values()) * 1.05, 100)
     for method in methods:
-        ax_profile.plot(taus, aggregate.performance_profile(matrices[method], taus), label=method)
+        ax_profile.plot(taus, stats.performance_profile(matrices[method], taus), label=method)
     ax_profile.set_xlabel("score τ")
     ax_profile.set_ylabel("fraction of runs × tasks above τ")
     ax_profile.set_title("performance profiles")

@@ -201,7 +201,7 @@ def aggregate_table(arms=ARMS) -> list[str]:
     """IQM and mean over the four sets × the seeds every set has, with stratified-bootstrap intervals."""
     import numpy as np
 
-    from benchmarks import aggregate
+    from torchrl_tels import stats
 
     rows = []
     for label, sources in arms:
@@ -210,13 +210,13 @@ def aggregate_table(arms=ARMS) -> list[str]:
         if len(seeds) < 2:
             continue
         scores = np.array([[runs[s]["final_normalized_score_mean"] for runs in by_task] for s in seeds])
-        cells = [aggregate.stratified_bootstrap_ci(scores, statistic) for statistic in (aggregate.iqm, aggregate.mean)]
+        cells = [stats.stratified_bootstrap_ci(scores, statistic) for statistic in (stats.iqm, stats.mean)]
         rows.append(f"| {label} | {len(seeds)} × {len(by_task)} | "
                     + " | ".join(f"**{p:.1f}** [{lo:.1f}, {hi:.1f}]" for p, lo, hi in cells) + " |")
     if not rows:
         return []
     return ["Over the four sets (arms with at least two seeds on every set): interquartile mean and mean of the "
-            "final scores over tasks × seeds, with 95 % stratified-bootstrap intervals (`benchmarks/aggregate.py`):",
+            "final scores over tasks × seeds, with 95 % stratified-bootstrap intervals (`torchrl_tels/stats.py`):",
             "", "| arm | seeds × tasks | IQM [95 % CI] | mean [95 % CI] |", "|---|---|---|---|", *rows, ""]
 
 

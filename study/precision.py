@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 
-from benchmarks.aggregate import t_interval
+from torchrl_tels.stats import t_interval
 from study.summary import HERE, seed_results, TASKS
 
 BF16_ARM, FP32_ARM, OTHER_CPU_ARM = "bf16_preset", "alpha1", "alpha1_epyc"

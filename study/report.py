@@ -8,7 +8,7 @@ with the link to the generated table that shows it, two facts measured outside t
 (``results/external/``), the deviations of the default and what each bought, and how to check one number.
 Every number on the page is computed here from the result JSONs, through the readers the study and the
 benchmarks already have (``summary``, ``budget``, ``latent_scale``, the readings' ``run_results``,
-``benchmarks.run_grid``, ``benchmarks.aggregate``, ``benchmarks.data_size``, ``benchmarks.representations``);
+``benchmarks.run_grid``, ``torchrl_tels.stats``, ``benchmarks.data_size``, ``benchmarks.representations``);
 the paper's values are ``benchmarks.run_grid.PAPER_TABLE1``. The prose is static; nothing is trained.
 """
 from __future__ import annotations
@@ -18,9 +18,10 @@ import json
 import statistics
 import sys
 
-from benchmarks import aggregate, data_size, representations, run_grid
+from benchmarks import data_size, representations, run_grid
 from benchmarks.harness import recorded_cpu, write_generated
 from study import beta_rule, budget, latent_scale, model_selection, oracle_choice, summary, value_delivery
+from torchrl_tels import stats
 from torchrl_tels.record import second_half_mean
 
 OUT = summary.HERE / "REPORT.md"
@@ -66,7 +67,7 @@ def cell(scores: list[float], note: str = "") -> str:
     """Mean, 95 % t-interval over seeds and n; the value and n=1 for one seed; "no runs" for none."""
     if not scores:
         return "no runs"
-    centre, low, high = aggregate.t_interval(scores)
+    centre, low, high = stats.t_interval(scores)
     extra = f"; {note}" if note else ""
     if len(scores) == 1:
         return f"**{centre:.1f}** (n=1{extra})"
@@ -162,7 +163,7 @@ def verdict(d: Data) -> list[str]:
         f"**{word}.** Table 1's TELS averages {paper_tels:.1f} over the four D4RL-10k locomotion sets; ours, in the "
         f"default (`domain=mujoco`) at the study budget, averages {_mean_text(d.study_matrix('tels_default'))} over "
         f"{d.study_matrix('tels_default').shape[0]} seeds × {len(TASKS)} sets (95 % stratified-bootstrap intervals, "
-        "`benchmarks/aggregate.py`; \"level\" below: the two intervals overlap). Its interquartile mean, "
+        "`torchrl_tels/stats.py`; \"level\" below: the two intervals overlap). Its interquartile mean, "
         f"{_iqm_text(d.study_matrix('tels_default'))}, is {_relation(d.study_matrix('tels_default'), d.study_matrix('bc'))} "
         f"our BC's on the same files and budget, {_iqm_text(d.study_matrix('bc'))}, and "
         f"{_relation(d.study_matrix('tels_default'), d.study_matrix('tels_paper'))} the paper's reading's, "
@@ -233,7 +234,7 @@ def table1(d: Data) -> list[str]:
         "Table 1's values are as the paper prints them (`benchmarks.run_grid.PAPER_TABLE1`): mean ± std over seeds at "
         f"{run_grid._steps_label(run_grid.PAPER_POLICY_STEPS)} policy steps, no interval, one TELS column. "
         "Ours: the mean over seeds, its 95 % Student-t interval, mean ± t(0.975, n − 1)·s/√n with s the seeds' sample "
-        "standard deviation (`benchmarks.aggregate.t_interval`), and n. A t-interval, because with three seeds a "
+        "standard deviation (`torchrl_tels.stats.t_interval`), and n. A t-interval, because with three seeds a "
         "bootstrap can draw only ten distinct resamples and its interval stays inside the seeds' range, understating "
         "how little three seeds pin down; n=1 gets no interval. "
         f"**Study budget**: {study_steps('tsidm.steps')} TS-IDM and {study_steps('optim.steps')} policy steps "

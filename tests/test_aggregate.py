@@ -1,10 +1,10 @@
-"""The aggregate statistics of benchmarks/aggregate.py against hand computations."""
+"""The aggregate statistics of torchrl_tels.stats against hand computations."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from benchmarks.aggregate import iqm, mean, performance_profile, stratified_bootstrap_ci, t_interval, t_quantile
+from torchrl_tels.stats import iqm, mean, performance_profile, stratified_bootstrap_ci, t_interval, t_quantile
 
 
 def test_iqm_cuts_a_quarter_from_each_end():

@@ -117,3 +117,10 @@ def test_sweep_through_the_local_submitit_launcher(tmp_path):
     assert [json.loads((job / "results.json").read_text())["seed"] for job in jobs] == [1, 2]
     # submitit ran each job apart: one folder of logs per job
     assert len([p for p in (sweep / ".submitit").iterdir() if p.name.isdigit()]) == 2
+    # ... and the summary command turns the sweep into its table
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "recipes" / "summarize.py"), str(sweep)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    scores = [json.loads((job / "results.json").read_text())["final_normalized_score_mean"] for job in jobs]
+    row = next(line for line in (sweep / "summary.md").read_text().splitlines() if line.startswith("| hopper"))
+    assert row.split("|")[2].strip() == f"{sum(scores) / 2:.1f}" and row.split("|")[4].strip() == "2"

@@ -1,4 +1,4 @@
-"""Aggregate scores over tasks × seeds as the field reports them (Agarwal et al., 2021, "Deep RL at the
+"""Aggregate statistics of normalized scores, as the field reports them (Agarwal et al., 2021, "Deep RL at the
 edge of the statistical precipice"; the ``rliable`` package): interquartile mean (IQM) and mean, with
 stratified-bootstrap confidence intervals, and performance profiles.
 

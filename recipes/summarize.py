@@ -1,0 +1,48 @@
+"""The table of a sweep, or of any run folders: per dataset and across datasets.
+
+    python recipes/summarize.py runs/multirun/2026-12-06_10-00-00
+    python recipes/summarize.py runs/a runs/b runs/c --out runs/table
+
+Reads the ``results.json`` of every recipe run folder under the folders given and writes, per dataset, the
+mean normalized score, its 95 % t-interval over seeds and n, and across datasets the IQM with a
+stratified-bootstrap 95 % interval (``torchrl_tels.summary``), as ``summary.md``, ``summary.csv`` and
+``summary.png`` in ``--out`` (default: the first folder). Unfinished, failed and running runs are listed,
+not counted.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from torchrl_tels.errors import TelsError
+from torchrl_tels.summary import collect_runs, summarize
+from torchrl_tels.training import write_text
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folders", nargs="+", type=Path, help="run folders, or folders holding run folders")
+    parser.add_argument("--out", type=Path, default=None, help="where summary.{md,csv,png} go (default: the first folder)")
+    args = parser.parse_args(argv)
+    try:
+        records = collect_runs(args.folders)
+        if not any(r.status == "finished" for r in records):
+            raise TelsError(f"no finished run under {', '.join(map(str, args.folders))} "
+                            f"({len(records)} run folder(s) found, none with results.json).")
+        summary = summarize(records)
+    except TelsError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = args.out or args.folders[0]
+    out.mkdir(parents=True, exist_ok=True)
+    markdown = summary.markdown()
+    write_text(out / "summary.md", markdown)
+    write_text(out / "summary.csv", summary.csv())
+    summary.plot(out / "summary.png")
+    print(markdown + f"written: {out / 'summary.md'}, summary.csv, summary.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

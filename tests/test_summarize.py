@@ -1,0 +1,80 @@
+"""recipes/summarize.py: the table of any run folders, checked against independent computations."""
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats as scipy_stats
+
+from torchrl_tels.run_folder import claim_run_dir
+from torchrl_tels.summary import collect_runs, summarize
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SCORES = {"hopper-medium-v2-10k": [40.0, 50.0, 45.0], "walker2d-medium-v2-10k": [20.0, 35.0, 30.0, 90.0]}
+
+
+def fake_run(folder: Path, dataset: str | None, seed: int, score: float | None) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "config.yaml").write_text(f"seed: {seed}\n")
+    if score is not None:
+        (folder / "results.json").write_text(json.dumps({"dataset": dataset, "seed": seed,
+                                                         "final_normalized_score_mean": score}))
+    return folder
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    root = tmp_path / "sweep"
+    for name, scores in SCORES.items():
+        for seed, score in enumerate(scores):
+            fake_run(root / f"{name}_{seed}", name, seed, score)
+    fake_run(root / "died", None, 7, None)
+    running = fake_run(root / "live", None, 8, None)
+    return root, running
+
+
+def t_interval(values):
+    values = np.asarray(values)
+    half = scipy_stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values))
+    return values.mean(), values.mean() - half, values.mean() + half
+
+
+def test_summary_matches_independent_statistics(sweep):
+    root, running = sweep
+    with claim_run_dir(running, resume=True, overwrite=False):
+        records = collect_runs([root])
+    status = {r.folder.name: r.status for r in records}
+    assert status["died"] == "unfinished" and status["live"] == "running"
+    summary = summarize(records)
+    for name, scores in SCORES.items():
+        row = summary.datasets[name]
+        assert row["n"] == len(scores)
+        np.testing.assert_allclose((row["mean"], row["low"], row["high"]), t_interval(scores), rtol=1e-6)
+    common = [[SCORES[n][s] for n in sorted(SCORES)] for s in range(3)]  # seed 3 is walker2d's only
+    assert summary.aggregate["seeds"] == [0, 1, 2]
+    assert summary.aggregate["iqm"] == pytest.approx(scipy_stats.trim_mean(np.ravel(common), 0.25))
+    assert summary.aggregate["low"] <= summary.aggregate["iqm"] <= summary.aggregate["high"]
+    text = summary.markdown()
+    assert "died (unfinished)" in text and "live (running)" in text
+
+
+def test_command_writes_markdown_csv_and_plot(sweep, tmp_path):
+    root, _ = sweep
+    out = tmp_path / "table"
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "recipes" / "summarize.py"), str(root), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["dataset"] for r in rows] == [*sorted(SCORES), "IQM over datasets"]
+    assert float(rows[0]["mean"]) == pytest.approx(np.mean(SCORES[rows[0]["dataset"]]))
+    assert (out / "summary.png").stat().st_size > 0 and "| hopper-medium-v2-10k | 45.0 |" in (out / "summary.md").read_text()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "recipes" / "summarize.py"), str(empty)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.startswith("error: no finished run") and not any(empty.iterdir())
