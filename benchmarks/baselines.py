@@ -288,7 +288,14 @@ def _tanh_mean_gaussian_actor(obs_key, obs_dim, action_spec, hp) -> Probabilisti
     )
 
 
-def _build_iql(obs_key, obs_dim, action_spec, hp, steps):
+def cosine_decay(optimizer: torch.optim.Optimizer, horizon: int) -> torch.optim.lr_scheduler.LambdaLR:
+    """The learning rate times ``(1 + cos(pi * min(t, horizon) / horizon)) / 2`` after ``t`` steps: optax's
+    ``cosine_decay_schedule``, which IQL's authors apply to the actor over their 1M-step budget."""
+    return torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda t: 0.5 * (1 + math.cos(math.pi * min(t, horizon) / horizon)))
+
+
+def _build_iql(obs_key, obs_dim, action_spec, hp):
     if hp["actor"] not in IQL_ACTORS:
         raise ValueError(f"unknown IQL actor {hp['actor']!r}; expected one of {IQL_ACTORS}.")
     if hp["actor_lr_schedule"] not in ("constant", "cosine"):
@@ -307,10 +314,7 @@ def _build_iql(obs_key, obs_dim, action_spec, hp, steps):
     actor_optim = torch.optim.Adam(list(loss.actor_network_params.values(True, True)), **kwargs)
     critic_optim = torch.optim.Adam([p for group in (loss.qvalue_network_params, loss.value_network_params)
                                      for p in group.values(True, True)], **kwargs)
-    horizon = hp["actor_lr_decay_steps"]
-    schedule = (torch.optim.lr_scheduler.LambdaLR(
-        actor_optim, lambda t: 0.5 * (1 + math.cos(math.pi * min(t, horizon) / horizon)))
-        if hp["actor_lr_schedule"] == "cosine" else None)
+    schedule = cosine_decay(actor_optim, hp["actor_lr_decay_steps"]) if hp["actor_lr_schedule"] == "cosine" else None
 
     def update(batch, step):
         losses = loss(batch)
@@ -327,7 +331,7 @@ def _build_iql(obs_key, obs_dim, action_spec, hp, steps):
     return actor, update, loss
 
 
-def _build_td3bc(obs_key, obs_dim, action_spec, hp, steps):
+def _build_td3bc(obs_key, obs_dim, action_spec, hp):
     actor = _deterministic_actor(obs_key, obs_dim, action_spec, hp)
     qvalue = ValueOperator(_mlp(obs_dim + action_spec.shape[-1], 1, hp["hidden_sizes"]),
                            in_keys=["action", obs_key])
@@ -358,7 +362,7 @@ def _build_td3bc(obs_key, obs_dim, action_spec, hp, steps):
     return actor, update, loss
 
 
-def _build_bc(obs_key, obs_dim, action_spec, hp, steps):
+def _build_bc(obs_key, obs_dim, action_spec, hp):
     actor = _deterministic_actor(obs_key, obs_dim, action_spec, hp)
     loss = BCLoss(actor, loss_function=hp["loss_function"])
     optim = torch.optim.Adam(loss.parameters(), lr=hp["lr"])
@@ -491,7 +495,7 @@ def train_baseline(
     buffer = make_offline_replay_buffer(data, batch_size, write_transforms=write_transforms, seed=seed,
                                         device=device)
     with device:  # every network and optimizer state is created there
-        actor, update, loss = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp, steps)
+        actor, update, loss = _BUILDERS[method](obs_key, net_in_dim, action_spec.to(device), hp)
     watch = FiniteWatch({"iql": "IQL", "iql_latent": "IQL", "td3bc": "TD3+BC", "bc": "BC"}[method])
     setup_s = time.perf_counter() - start_time
 

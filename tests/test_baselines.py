@@ -109,3 +109,64 @@ def test_run_one_hands_the_set_values_to_the_baseline_over_the_maze_ones(tmp_pat
         run_grid.run_one("iql", task, 0, args)
     assert received["hopper-medium-v2-10k"] == {"temperature": 5}
     assert received["antmaze-umaze-v0-10k"] == {**baselines.MAZE_HYPERPARAMETERS["iql"], "temperature": 5}
+
+
+# ----------------------------------------------------------- IQL's authors' actor
+def _box(dim: int):
+    from torchrl.data import Bounded
+
+    return Bounded(-torch.ones(dim), torch.ones(dim), (dim,))
+
+
+def test_authors_actor_is_a_gaussian_around_a_tanh_mean_with_a_free_log_std():
+    hp = {**baselines.HYPERPARAMETERS["iql"], **baselines.IQL_AUTHORS_ACTOR}
+    actor = baselines._tanh_mean_gaussian_actor("observation", 5, _box(3), hp)
+    obs = torch.randn(7, 5)
+    dist = actor.get_dist(TensorDict(observation=obs, batch_size=[7]))
+    mlp = actor.module[0].module[0]  # the MLP before the tanh
+    torch.testing.assert_close(dist.mean, torch.tanh(mlp(obs)))  # the box is [-1, 1]: tanh is the mean
+    log_std = actor.module[0].module[2].module.state_independent_scale
+    torch.testing.assert_close(dist.stddev, log_std.exp().expand(7, 3))
+    with torch.no_grad():
+        log_std.fill_(-9.0)  # below the authors' floor of -5
+    dist = actor.get_dist(TensorDict(observation=obs, batch_size=[7]))
+    torch.testing.assert_close(dist.stddev, torch.full((7, 3), torch.tensor(-5.0).exp().item()))
+    # samples are not squashed: a Gaussian's log-likelihood of +-1 is finite
+    assert torch.isfinite(dist.log_prob(torch.ones(7, 3))).all()
+
+
+def test_authors_actor_learns_saturated_actions_by_likelihood():
+    """Actions at the box's edge, as 30 % of the maze data's entries: the tanh-mean Gaussian fits them."""
+    torch.manual_seed(0)
+    hp = {**baselines.HYPERPARAMETERS["iql"], **baselines.IQL_AUTHORS_ACTOR}
+    actor = baselines._tanh_mean_gaussian_actor("observation", 4, _box(2), hp)
+    obs = torch.randn(256, 4)
+    target = torch.stack([torch.sign(obs[:, 0]), 0.5 * torch.tanh(obs[:, 1])], -1)  # first entry always +-1
+    target = baselines._clip_actions(TensorDict(action=target, batch_size=[256]), _box(2), 1e-5)["action"]
+    assert target.abs().max() == pytest.approx(1 - 1e-5)
+    optim = torch.optim.Adam(actor.parameters(), lr=3e-3)
+    for _ in range(400):
+        loss = -actor.get_dist(TensorDict(observation=obs, batch_size=[256])).log_prob(target).mean()
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+    mean = actor.get_dist(TensorDict(observation=obs, batch_size=[256])).mean
+    assert (mean[:, 0] - target[:, 0]).abs().median() < 0.05
+    assert (mean[:, 1] - target[:, 1]).abs().median() < 0.05
+
+
+def test_authors_actor_lr_follows_a_cosine_decay():
+    import math
+
+    optim = torch.optim.Adam([torch.nn.Parameter(torch.zeros(2))], lr=3e-4)
+    schedule = baselines.cosine_decay(optim, horizon=8)
+    lrs = []
+    for _ in range(10):
+        optim.step()
+        schedule.step()
+        lrs.append(optim.param_groups[0]["lr"])
+    assert lrs == pytest.approx([3e-4 * 0.5 * (1 + math.cos(math.pi * min(k, 8) / 8)) for k in range(1, 11)])
+    assert lrs[-1] == 0.0
+    # the authors' horizon is 1M steps: over a 5k-step run the actor's rate barely moves
+    assert baselines.IQL_AUTHORS_ACTOR["actor_lr_decay_steps"] == 1_000_000
+    assert 0.5 * (1 + math.cos(math.pi * 5000 / 1_000_000)) > 0.9999
