@@ -20,7 +20,7 @@ import sys
 
 from benchmarks import data_size, representations, run_grid
 from benchmarks.harness import recorded_cpu, write_generated
-from study import beta_rule, budget, latent_scale, model_selection, oracle_choice, summary, value_delivery
+from study import beta_rule, budget, domains, latent_scale, model_selection, oracle_choice, summary, value_delivery
 from torchrl_tels import stats
 from torchrl_tels.record import second_half_mean
 
@@ -179,7 +179,9 @@ def verdict(d: Data) -> list[str]:
         "own longest "
         f"({tels_label.removeprefix('TELS at ')}), {_iqm_text(tels_long)}. The study traces the gap to "
         "the values: learned from 10k transitions, they order states but not one state's alternatives, so the gain "
-        "the guide promises is never delivered, and TELS acts much as BC does (mechanisms below).", ""]
+        "the guide promises is never delivered, and TELS acts much as BC does (mechanisms below).", "",
+        *(line + "\n" for line in domains.verdict_lines()),
+        "Details: [AntMaze and Adroit](#antmaze-and-adroit-beside-tables-1-and-6).", ""]
 
 
 def _row_cells(scores_of, note_of) -> list[str]:
@@ -485,7 +487,8 @@ def render() -> str:
         "edit. Every table behind it: [RESULTS.md](RESULTS.md) (the study's), "
         "[TABLE.md](../benchmarks/results/TABLE.md) (the baseline grid's); what was run, when and why: "
         "[LOG.md](LOG.md); the study's scripts: [README.md](README.md).", "",
-        *verdict(d), *table1(d), *mechanisms(d), *external(d), *deviations(d), *check_yourself(d)])
+        *verdict(d), *table1(d), *domains.section(), *mechanisms(d), *external(d), *deviations(d),
+        *check_yourself(d)])
 
 
 def main(argv=None) -> int:
