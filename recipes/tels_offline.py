@@ -49,7 +49,6 @@ from torchrl_tels.config import (  # noqa: E402
     resolve_threads,
     validate_config,
 )
-from torchrl_tels.diagnostics import action_chain_statistics  # noqa: E402
 from torchrl_tels.envs import make_eval_envs  # noqa: E402
 from torchrl_tels.errors import TelsError  # noqa: E402
 from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
@@ -57,8 +56,8 @@ from torchrl_tels.seeds import SeedRNG  # noqa: E402
 from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
 from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, RunFolderClaim  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
+    after_training_diagnostics,
     check_same_stage1_length,
-    guide_weight_diagnostics,
     evaluate,
     evaluation_scalars,
     fit_tsidm_seeds,
@@ -68,6 +67,7 @@ from torchrl_tels.trainer import (  # noqa: E402
     make_monitor,
     make_stage1,
     make_stage2,
+    print_plan,
     RunState,
     skip_stage1,
     StackedStage2,
@@ -152,6 +152,7 @@ def train(cfg: DictConfig) -> dict:
     data, task = make_data(cfg)
     check_monitor_data(cfg, data)
     pretrained = load_pretrained_tsidm(cfg, data)
+    print_plan(cfg, len(data))
     logger = open_run_dir(cfg, run, run_dir)
     # The deployment monitor (monitor.pt) needs only the data; recipes/export_policy.py exports it with the policy.
     monitor = make_monitor(cfg, data, run_dir)
@@ -197,8 +198,7 @@ def train(cfg: DictConfig) -> dict:
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
                       metadata={"results": str(run_dir / "results.json")})
     # Stored with the score: a low score with a low inverse error points at the guide, a high one at the TS-IDM.
-    diagnostics = {**stage2.latent_stats, **action_chain_statistics(stage2.actor, data),
-                   **guide_weight_diagnostics(cfg, stage2, task)}
+    diagnostics = after_training_diagnostics(cfg, stage2, data, task)
     results = write_results(cfg, run, task, tsidm.metadata.get("beta"), diagnostics, run_dir,
                             tsidm_steps=tsidm_steps(cfg, len(data)), policy_steps=cfg.policy.steps - start)
     run.stage, run.step = "done", cfg.policy.steps
@@ -229,6 +229,7 @@ def train_seeds(cfg: DictConfig) -> dict:
     for c, data in zip(configs, datas):
         check_monitor_data(c, data)
     pretrained = load_pretrained_tsidm(cfg, datas[0])
+    print_plan(cfg, len(datas[0]))
     seed_runs = ([RunState.from_seed_record(r) for r in run.per_seed] if run.per_seed
                  else [RunState(config={}) for _ in seeds])
     logger = open_run_dir(cfg, run, run_dir)
@@ -317,8 +318,7 @@ def train_seeds(cfg: DictConfig) -> dict:
                           mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
                           metadata={"results": str(Path(c.run_dir) / "results.json")})
         with rng.use(k):  # an actor acting with dropout draws from its seed's own stream
-            diagnostics = {**stage.latent_stats, **action_chain_statistics(stage.actor, data),
-                           **guide_weight_diagnostics(c, stage, task)}
+            diagnostics = after_training_diagnostics(c, stage, data, task)
         results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), diagnostics,
                                      Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(data)),
                                      policy_steps=cfg.policy.steps - start))

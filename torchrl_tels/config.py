@@ -30,7 +30,8 @@ __all__ = [
 #: Top-level config entries that may differ between a run and its ``resume=true``
 #: continuation: they decide where and how a run is logged, not what it computes. The deployment
 #: monitor is fitted once and saved as monitor.pt, which a continuation reads back.
-RESUMABLE_KEYS = ("run_dir", "resume", "overwrite", "threads", "device", "logger", "checkpoint", "compile", "monitor")
+RESUMABLE_KEYS = ("run_dir", "resume", "overwrite", "threads", "device", "logger", "checkpoint", "compile", "monitor",
+                  "diagnostics")
 
 #: Options added after checkpoints were first written, as (section, key): (the value that
 #: reproduces how a checkpoint without the option behaved, when the option matters at all).
@@ -41,6 +42,7 @@ ADDED_OPTIONS = {
     ("tsidm", "term_weights"): (None, lambda cfg: True),
     ("eval", "batched"): (False, lambda cfg: True),
     ("guide", "reach_weight"): (0.0, lambda cfg: True),
+    ("tsidm", "warn_steps"): (None, lambda cfg: False),  # a warning's threshold: changes nothing a run computes
 }
 
 
@@ -219,6 +221,11 @@ def _check_monitor(cfg) -> None:
     if isinstance(cells, (str, bytes)) or not hasattr(cells, "__len__") or not all(
             isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in cells):
         raise ConfigError(f"monitor.num_cells must be a list of positive integers (layer widths), got {cells!r}.")
+    for key, node in (("monitor.max_transitions", monitor), ("diagnostics.max_transitions",
+                                                            OmegaConf.select(cfg, "diagnostics") or {})):
+        value = node.get("max_transitions")
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 100):
+            raise ConfigError(f"{key} must be null or an integer >= 100, got {value!r}.")
     for key in ("holdout", "quantile", "window_quantile"):
         if not 0.0 < _number(cfg, f"monitor.{key}") < 1.0:
             raise ConfigError(f"monitor.{key} must lie in (0, 1), got {monitor[key]!r}.")

@@ -35,10 +35,10 @@ from torchrl_tels.compile import capturable_adam, compile_update, precision_cont
 from torchrl_tels.config import (check_same_run, monitor_fit_options, resolve_device, resolve_precision,
                                  training_config)
 from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
-                               subset_dataset, trajectory_ids)
+                               subset_dataset, subset_trajectories, trajectory_ids)
 from torchrl_tels.data.datasets import recorded_env_id
-from torchrl_tels.diagnostics import (awr_weight_statistics, is_frozen, is_off_data, latent_statistics, maze_cells,
-                                     rollout_statistics)
+from torchrl_tels.diagnostics import (action_chain_statistics, awr_weight_statistics, is_frozen, is_off_data,
+                                     latent_statistics, maze_cells, rollout_statistics)
 from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, rollout_episodes, Task,
                                TSIDMEncoderTransform)
 from torchrl_tels.envs.evaluation import episode_success, eval_env_spaces, success_rate
@@ -129,6 +129,33 @@ def make_train_step(loss_module, optim: torch.optim.Optimizer, amp=contextlib.nu
 def tsidm_steps(cfg, n_transitions: int) -> int:
     """Stage 1's length: ``tsidm.steps``, or ``tsidm.epochs`` passes over the data (Table 10)."""
     return cfg.tsidm.steps or cfg.tsidm.epochs * math.ceil(n_transitions / cfg.tsidm.batch_size)
+
+
+def print_plan(cfg, n_transitions: int) -> None:
+    """Says, before anything trains, how long each stage will run; warns when an epoch budget on a large set
+    means a stage 1 of more than ``tsidm.warn_steps`` steps (Table 10's 1000 epochs were set for 10k sets)."""
+    stage1 = 0 if cfg.tsidm.checkpoint else tsidm_steps(cfg, n_transitions)
+    candidates = len(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else 1
+    how = "from tsidm.steps" if cfg.tsidm.steps else f"{cfg.tsidm.epochs} epochs of {n_transitions} transitions"
+    print(f"plan: stage 1 {stage1 * candidates} TS-IDM steps ({how}"
+          + (f", {candidates} beta candidates" if candidates > 1 else "") + f"), stage 2 {cfg.policy.steps} policy "
+          f"steps, an evaluation of {cfg.eval.episodes} episodes every {cfg.eval.interval} steps; batch "
+          f"{cfg.tsidm.batch_size}/{cfg.policy.batch_size}")
+    warn = cfg.tsidm.get("warn_steps")
+    if warn and not cfg.tsidm.steps and stage1 > warn:
+        print(f"warning: tsidm.epochs={cfg.tsidm.epochs} on {n_transitions} transitions is {stage1} TS-IDM steps, "
+              f"past tsidm.warn_steps={warn}; set tsidm.steps to bound stage 1 (BENCHMARKS.md, data size).",
+              file=sys.stderr)
+
+
+def diagnostic_indices(cfg, n_transitions: int) -> torch.Tensor | None:
+    """The transitions the after-training readings average over: a random subset of ``diagnostics.max_transitions``
+    (seeded by the run's seed), or ``None`` for all of them when the data is no larger."""
+    limit = OmegaConf.select(cfg, "diagnostics.max_transitions")
+    if limit is None or n_transitions <= limit:
+        return None
+    generator = torch.Generator().manual_seed(int(cfg.seed))
+    return torch.randperm(n_transitions, generator=generator)[:limit].sort().values
 
 
 # ----------------------------------------------------------------------------- data
@@ -714,6 +741,11 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
     m = cfg.monitor
     options = {**monitor_fit_options(m), "quantile": m.quantile, "seed": cfg.seed, "precision": precision}
     data = data.cpu()
+    if m.get("max_transitions") and len(data) > m.max_transitions:
+        # Whole trajectories: the held-out calibration splits by trajectory.
+        data = subset_trajectories(data, m.max_transitions, cfg.seed)
+        print(f"deployment monitor: fitted on {len(data)} transitions, whole trajectories drawn at random "
+              f"(monitor.max_transitions={m.max_transitions})")
     clock = time.perf_counter()
     with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
         if m.calibration == "cross_fit":
@@ -768,13 +800,25 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
     return result
 
 
-def guide_weight_diagnostics(cfg, stage2: "Stage2", task: Task) -> dict:
-    """For the stochastic guide (Eq. 10), ``{"awr_weights": ...}``: where its weights fall over the whole
-    encoded data (:func:`~torchrl_tels.diagnostics.awr_weight_statistics`), per maze cell on a maze task
-    (the (x, y) columns ``dataset.delete_xy``); empty for the deterministic guide."""
+def after_training_diagnostics(cfg, stage2: "Stage2", data: TensorDictBase, task: Task) -> dict:
+    """The readings ``results.json`` records: the latent scale, the action chain
+    (:func:`~torchrl_tels.diagnostics.action_chain_statistics`) and the stochastic guide's weights, over at most
+    ``diagnostics.max_transitions`` transitions (:func:`diagnostic_indices`)."""
+    indices = diagnostic_indices(cfg, len(data))
+    subset = data if indices is None else data[indices]
+    return {**stage2.latent_stats, **action_chain_statistics(stage2.actor, subset),
+            **guide_weight_diagnostics(cfg, stage2, task, indices),
+            "diagnostic_transitions": len(subset)}
+
+
+def guide_weight_diagnostics(cfg, stage2: "Stage2", task: Task, indices: torch.Tensor | None = None) -> dict:
+    """For the stochastic guide (Eq. 10), ``{"awr_weights": ...}``: where its weights fall over the encoded
+    data (``indices`` of it, or all; :func:`~torchrl_tels.diagnostics.awr_weight_statistics`), per maze cell
+    on a maze task (the (x, y) columns ``dataset.delete_xy``); empty for the deterministic guide."""
     if cfg.guide.mode != "stochastic":
         return {}
     encoded = stage2.buffer.storage[:]
+    encoded = encoded if indices is None else encoded[indices.to(encoded.device)]
     regions = (maze_cells(encoded["observation"][:, list(cfg.dataset.delete_xy)])
                if "maze" in task.name.lower() else None)
     return {"awr_weights": awr_weight_statistics(stage2.guide_loss, encoded, regions)}

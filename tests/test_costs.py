@@ -1,0 +1,53 @@
+"""Costs that stay bounded as data grows: the monitor's fit, the after-training readings, and the plan a run prints."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from benchmarks.step_floor import recipe_config
+from torchrl_tels.config import validate_config
+from torchrl_tels.envs.monitor import DeploymentMonitor
+from torchrl_tels.errors import ConfigError
+from torchrl_tels.trainer import diagnostic_indices, make_monitor, print_plan
+from tests.test_monitor import linear_plant
+
+
+def test_monitor_fits_on_whole_trajectories_up_to_its_cap(tmp_path, monkeypatch):
+    data = linear_plant(6)  # 6 trajectories of 50 transitions
+    seen = []
+    real = DeploymentMonitor.cross_fit
+    monkeypatch.setattr(DeploymentMonitor, "cross_fit",
+                        classmethod(lambda cls, fit_data, **k: seen.append(fit_data) or real(fit_data, **k)))
+    make_monitor(recipe_config(["budget=smoke", "monitor.max_transitions=120"]), data, tmp_path / "a")
+    fitted = seen[-1]
+    assert 120 <= len(fitted) < 170  # whole trajectories until the cap is reached
+    _, counts = fitted["episode"].unique(return_counts=True)
+    assert (counts == 50).all()
+    make_monitor(recipe_config(["budget=smoke"]), data, tmp_path / "b")  # 100k: all 300 transitions
+    assert len(seen[-1]) == len(data)
+
+
+def test_diagnostics_read_a_seeded_subset_of_large_data():
+    cfg = recipe_config(["diagnostics.max_transitions=1000"])
+    assert diagnostic_indices(cfg, 1000) is None
+    picked = diagnostic_indices(cfg, 50_000)
+    assert len(picked) == 1000 and len(picked.unique()) == 1000 and picked.max() < 50_000
+    assert torch.equal(picked, diagnostic_indices(cfg, 50_000))  # seeded by the run's seed
+    assert not torch.equal(picked, diagnostic_indices(recipe_config(["diagnostics.max_transitions=1000", "seed=1"]),
+                                                      50_000))
+
+
+@pytest.mark.parametrize("override", ["monitor.max_transitions=10", "diagnostics.max_transitions=true"])
+def test_bad_caps_are_refused(override):
+    with pytest.raises(ConfigError, match="max_transitions must be null or an integer >= 100"):
+        validate_config(recipe_config([override]))
+
+
+def test_plan_is_printed_and_a_large_epoch_budget_warned(capsys):
+    print_plan(recipe_config(["budget=paper"]), 1_000_000)
+    out, err = capsys.readouterr()
+    assert "plan: stage 1 3907000 TS-IDM steps (1000 epochs of 1000000 transitions), stage 2 100000 policy steps" in out
+    assert "warning: tsidm.epochs=1000 on 1000000 transitions is 3907000 TS-IDM steps" in err
+    print_plan(recipe_config(["budget=paper"]), 9013)  # a 10k set: 36k steps, no warning
+    out, err = capsys.readouterr()
+    assert "stage 1 36000 TS-IDM steps" in out and not err
