@@ -155,7 +155,8 @@ def train(cfg: DictConfig) -> dict:
     print_plan(cfg, len(data))
     logger = open_run_dir(cfg, run, run_dir)
     # The deployment monitor (monitor.pt) needs only the data; recipes/export_policy.py exports it with the policy.
-    monitor = make_monitor(cfg, data, run_dir)
+    with run.time("monitor_s"):
+        monitor = make_monitor(cfg, data, run_dir)
 
     # Algorithm 1, lines 1-4: train the TS-IDM (Eq. 3-7).
     tsidm = make_stage1(cfg, data, run, run_dir, logger, pretrained)
@@ -198,7 +199,8 @@ def train(cfg: DictConfig) -> dict:
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
                       metadata={"results": str(run_dir / "results.json")})
     # Stored with the score: a low score with a low inverse error points at the guide, a high one at the TS-IDM.
-    diagnostics = after_training_diagnostics(cfg, stage2, data, task)
+    with run.time("diagnostics_s"):
+        diagnostics = after_training_diagnostics(cfg, stage2, data, task)
     results = write_results(cfg, run, task, tsidm.metadata.get("beta"), diagnostics, run_dir,
                             tsidm_steps=tsidm_steps(cfg, len(data)), policy_steps=cfg.policy.steps - start)
     run.stage, run.step = "done", cfg.policy.steps

@@ -161,7 +161,8 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
                                        "guide/advantage", "guide/clipped_weight_fraction",
                                        "guide/effective_sample_fraction", "value/state_value")},
         },
-        "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall.get("eval_s", 0.0)},
+        "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall.get("eval_s", 0.0),
+                        "monitor": wall.get("monitor_s"), "diagnostics": wall.get("diagnostics_s")},
         "steps_per_s": {
             "tsidm": tsidm_steps * n_candidates / wall["tsidm_s"] if wall.get("tsidm_s") else None,
             "policy_including_eval": policy_steps / wall["policy_s"] if policy_steps else None,
