@@ -66,6 +66,8 @@ from torchrl_tels.trainer import (  # noqa: E402
     make_data,
     make_monitor,
     make_stage1,
+    monitor_in_background,
+    MonitorFit,
     make_stage2,
     print_plan,
     RunState,
@@ -155,8 +157,9 @@ def train(cfg: DictConfig) -> dict:
     print_plan(cfg, len(data))
     logger = open_run_dir(cfg, run, run_dir)
     # The deployment monitor (monitor.pt) needs only the data; recipes/export_policy.py exports it with the policy.
+    # Fitted beside the stages on a core the run leaves free (monitor.background), waited for at the end.
     with run.time("monitor_s"):
-        monitor = make_monitor(cfg, data, run_dir)
+        monitor = MonitorFit(cfg, data, run_dir, background=monitor_in_background(cfg))
 
     # Algorithm 1, lines 1-4: train the TS-IDM (Eq. 3-7).
     tsidm = make_stage1(cfg, data, run, run_dir, logger, pretrained)
@@ -185,8 +188,11 @@ def train(cfg: DictConfig) -> dict:
             if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
                 with run.time("eval_s"):  # the final evaluation also records the deployment monitor
                     final = step + 1 == cfg.policy.steps
+                    if final:
+                        with run.time("monitor_s"):
+                            monitor.get()
                     run.evaluations.append(evaluate(cfg, stage2.actor, env, task, step + 1, stage2.latent_stats,
-                                                    monitor=monitor if final else None))
+                                                    monitor=monitor.get() if final else None))
                 logger.log_scalars(evaluation_scalars(run.evaluations[-1]), step + 1)
                 progress.set_postfix(score=f"{run.evaluations[-1]['score']:.1f}", eval_s=f"{run.wall['eval_s']:.0f}")
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:

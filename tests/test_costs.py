@@ -51,3 +51,21 @@ def test_plan_is_printed_and_a_large_epoch_budget_warned(capsys):
     print_plan(recipe_config(["budget=paper"]), 9013)  # a 10k set: 36k steps, no warning
     out, err = capsys.readouterr()
     assert "stage 1 36000 TS-IDM steps" in out and not err
+
+
+def test_monitor_fitted_in_the_background_is_the_inline_one(tmp_path):
+    from torchrl_tels.trainer import MonitorFit, monitor_in_background
+
+    cfg = recipe_config(["budget=smoke", "monitor.window=4"])
+    data = linear_plant(6)
+    inline = MonitorFit(cfg, data, tmp_path / "inline", background=False).get()
+    (tmp_path / "background").mkdir()
+    background = MonitorFit(cfg, data, tmp_path / "background", background=True).get()
+    assert float(background.threshold) == float(inline.threshold)
+    assert float(background.window_threshold) == float(inline.window_threshold)
+    for key, value in inline.state_dict().items():
+        torch.testing.assert_close(background.state_dict()[key], value, rtol=0, atol=0)
+    assert monitor_in_background(recipe_config(["monitor.background=true"]))
+    assert not monitor_in_background(recipe_config(["monitor.background=false"]))
+    with pytest.raises(ConfigError, match="monitor.background must be auto, true or false"):
+        validate_config(recipe_config(["monitor.background=sometimes"]))

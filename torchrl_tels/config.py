@@ -221,6 +221,8 @@ def _check_monitor(cfg) -> None:
     if isinstance(cells, (str, bytes)) or not hasattr(cells, "__len__") or not all(
             isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in cells):
         raise ConfigError(f"monitor.num_cells must be a list of positive integers (layer widths), got {cells!r}.")
+    if monitor.get("background", False) not in ("auto", True, False):
+        raise ConfigError(f"monitor.background must be auto, true or false, got {monitor.get('background')!r}.")
     for key, node in (("monitor.max_transitions", monitor), ("diagnostics.max_transitions",
                                                             OmegaConf.select(cfg, "diagnostics") or {})):
         value = node.get("max_transitions")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -33,7 +34,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
 from torchrl_tels.config import (check_same_run, monitor_fit_options, resolve_device, resolve_precision,
-                                 training_config)
+                                 resolve_threads, training_config)
 from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
                                subset_dataset, subset_trajectories, trajectory_ids)
 from torchrl_tels.data.datasets import recorded_env_id
@@ -754,9 +755,51 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
             train, calibration = split_trajectories(data, 1.0 - float(m.holdout), cfg.seed)
             monitor = DeploymentMonitor.fit(train, calibration, **options)
     print(f"deployment monitor: {m.calibration} calibration, threshold {float(monitor.threshold):.3g}, "
-          f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)")
+          f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)", flush=True)
     monitor.save(path, metadata=fitted_for)
     return monitor
+
+
+def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str) -> None:
+    """:func:`make_monitor` in a process of its own, on one thread; the monitor lands in ``run_dir/monitor.pt``."""
+    torch.set_num_threads(1)
+    make_monitor(OmegaConf.create(config), data, Path(run_dir))
+
+
+def monitor_in_background(cfg) -> bool:
+    """``monitor.background``: ``auto`` fits the monitor beside training when the machine has a core the run's
+    torch threads leave free."""
+    setting = cfg.monitor.get("background", False)
+    if setting == "auto":
+        return (os.cpu_count() or 1) > resolve_threads(cfg.threads)
+    return bool(setting)
+
+
+class MonitorFit:
+    """The run's deployment monitor (:func:`make_monitor`), fitted inline or, with ``background``, in a process
+    of its own while the stages train; :meth:`get` waits for it. The two give the same monitor: its fits are
+    seeded and its calibration draws on its own generators."""
+
+    def __init__(self, cfg, data: TensorDictBase, run_dir: Path, background: bool) -> None:
+        self.path, self._monitor, self._future = run_dir / "monitor.pt", None, None
+        self._sizes = {"observation_dim": data["observation"].shape[-1], "action_dim": data["action"].shape[-1]}
+        if not background:
+            self._monitor = make_monitor(cfg, data, run_dir)
+            return
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._pool = ProcessPoolExecutor(1, mp_context=torch.multiprocessing.get_context("spawn"))
+        self._future = self._pool.submit(_fit_monitor_in_child, OmegaConf.to_container(cfg, resolve=True),
+                                         data.cpu(), str(run_dir))
+
+    def get(self) -> DeploymentMonitor:
+        if self._monitor is None:
+            try:
+                self._future.result()
+            finally:
+                self._pool.shutdown()
+            self._monitor = DeploymentMonitor.load(self.path, **self._sizes)
+        return self._monitor
 
 
 def score(task: Task, episode_return: float) -> float:
