@@ -347,7 +347,7 @@ def _changed_hyperparameters(found: dict) -> list[str]:
     return [f"**Changed from the baselines' defaults:** {', '.join(sorted(changed))}.", ""]
 
 
-def _paper_cell(value: tuple) -> str:
+def paper_cell(value: tuple) -> str:
     mean, std = value
     return f"{mean:.1f}" + (f" ± {std:.1f}" if std is not None else "")
 
@@ -381,9 +381,9 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
             if runs:
                 mean, std = _mean_std([r["final_normalized_score_mean"] for r in runs])
                 ours = f"**{mean:.1f}** ± {std:.1f} (n={len(runs)})" if len(runs) > 1 else f"**{mean:.1f}** (n=1)"
-            ref = _paper_cell(paper[method]) if method in paper else "—"
+            ref = paper_cell(paper[method]) if method in paper else "—"
             cells.append(f"{ours} · paper {ref}")
-        tsrl = _paper_cell(paper["tsrl"]) if "tsrl" in paper else "—"
+        tsrl = paper_cell(paper["tsrl"]) if "tsrl" in paper else "—"
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))

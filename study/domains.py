@@ -66,7 +66,7 @@ def relation(a: list[float], b: list[float]) -> str:
 
 def _paper(task: str, method: str) -> str:
     value = run_grid.PAPER_TABLE1.get(task, {}).get(method)
-    return "—" if value is None else run_grid._paper_cell(value)
+    return "—" if value is None else run_grid.paper_cell(value)
 
 
 def saturation(tasks) -> dict[str, float]:
