@@ -177,7 +177,9 @@ MAZE_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
 # One departure from the authors on mazes: states normalized (mean/std + 1e-3, as BC and TD3+BC here). The
 # authors feed raw states for 1M steps; at the grid's 5k, raw states left IQL near 0 on antmaze-umaze 10k and
 # normalized ones near BC (benchmarks/results/iql_raw_states against iql, 3 seeds each; study/REPORT.md, AntMaze).
-MAZE_HYPERPARAMETERS["iql"]["normalize_observations"] = True
+MAZE_HYPERPARAMETERS["iql"].update(normalize_observations=True, source=(
+    "IQL authors' code for AntMaze (tanh-mean Gaussian actor, state-independent std, actions clipped to "
+    "+-(1 - 1e-5), cosine actor lr over 1M steps), with states normalized (theirs are raw); TorchRL's IQLLoss"))
 
 _OBS_NORM_EPS = 1e-3  # TD3+BC paper: std + 1e-3
 
@@ -258,7 +260,7 @@ IQL_ACTORS = ("tanh_normal", "tanh_mean_gaussian")
 def _tanh_normal_actor(obs_key, obs_dim, action_spec, hp) -> ProbabilisticActor:
     """TorchRL's IQL recipe actor: a TanhNormal with a state-dependent scale."""
     actor_net = nn.Sequential(
-        _mlp(obs_dim, 2 * action_spec.shape[-1], hp["hidden_sizes"]),
+        _mlp(obs_dim, 2 * action_spec.shape[-1], hp["hidden_sizes"], dropout=hp["actor_dropout"]),
         NormalParamExtractor(scale_mapping=f"biased_softplus_{hp['default_policy_scale']}",
                              scale_lb=hp["scale_lb"]),
     )

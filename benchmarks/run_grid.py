@@ -491,7 +491,7 @@ def _aggregate_rows(matrices: dict, estimates: dict) -> list[str]:
 
 
 def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None = None) -> list[str]:
-    """IQM and mean over tasks × seeds with stratified-bootstrap 95 % intervals (``benchmarks.aggregate``),
+    """IQM and mean over tasks × seeds with stratified-bootstrap 95 % intervals (``torchrl_tels.stats``),
     as a table and a PNG with the performance profiles; a method run at a longer budget on all four sets
     (``longer``) gets a row of its own."""
     matrices = {LABELS[m]: score_matrix(found, m) for m in TABLE_COLUMNS}

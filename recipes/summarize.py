@@ -6,8 +6,9 @@
 Reads the ``results.json`` of every recipe run folder under the folders given and writes, per dataset, the
 mean normalized score, its 95 % t-interval over seeds and n, and across datasets the IQM with a
 stratified-bootstrap 95 % interval (``torchrl_tels.summary``), as ``summary.md``, ``summary.csv`` and
-``summary.png`` in ``--out`` (default: the first folder). Unfinished, failed and running runs are listed,
-not counted.
+``summary.png`` in ``--out`` (default: the first folder). Runs that computed with different settings (a sweep
+over a hyperparameter) are arms: one table and one plot each (``summary_arm<i>.png``), labelled by the settings
+that differ. Unfinished, failed and running runs are listed, not counted.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import sys
 from pathlib import Path
 
 from torchrl_tels.errors import TelsError
-from torchrl_tels.summary import collect_runs, summarize
+from torchrl_tels.summary import arms, collect_runs, summarize
 from torchrl_tels.training import write_text
 
 
@@ -30,18 +31,47 @@ def main(argv=None) -> int:
         if not any(r.status == "finished" for r in records):
             raise TelsError(f"no finished run under {', '.join(map(str, args.folders))} "
                             f"({len(records)} run folder(s) found, none with results.json).")
-        summary = summarize(records)
+        groups = arms(records)
+        unfinished = [r for r in records if r.status != "finished"]
+        summaries = {label: summarize(runs + unfinished) for label, runs in groups.items()}
     except TelsError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     out = args.out or args.folders[0]
     out.mkdir(parents=True, exist_ok=True)
-    markdown = summary.markdown()
+    if len(summaries) == 1:
+        (summary,) = summaries.values()
+        markdown, table = summary.markdown(), summary.csv()
+        summary.plot(out / "summary.png")
+        plots = ["summary.png"]
+    else:  # a sweep over settings: one table per arm, and a plot each
+        markdown = "".join(f"## {label}\n\n{s.markdown()}\n" for label, s in summaries.items())
+        table = _arm_csv(summaries)
+        plots = []
+        for i, (label, s) in enumerate(summaries.items()):
+            s.plot(out / f"summary_arm{i}.png", title=label)
+            plots.append(f"summary_arm{i}.png")
     write_text(out / "summary.md", markdown)
-    write_text(out / "summary.csv", summary.csv())
-    summary.plot(out / "summary.png")
-    print(markdown + f"written: {out / 'summary.md'}, summary.csv, summary.png")
+    write_text(out / "summary.csv", table)
+    print(markdown + f"written: {out / 'summary.md'}, summary.csv, {', '.join(plots)}")
     return 0
+
+
+def _arm_csv(summaries: dict) -> str:
+    """One CSV of every arm's rows, with the arm's label as the first column."""
+    import csv
+    import io
+
+    out = io.StringIO()
+    writer = csv.writer(out)
+    header_written = False
+    for label, summary in summaries.items():
+        rows = list(csv.reader(io.StringIO(summary.csv())))
+        if not header_written:
+            writer.writerow(["arm", *rows[0]])
+            header_written = True
+        writer.writerows([label, *row] for row in rows[1:])
+    return out.getvalue()
 
 
 if __name__ == "__main__":

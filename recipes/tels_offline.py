@@ -53,6 +53,7 @@ from torchrl_tels.envs import make_eval_envs  # noqa: E402
 from torchrl_tels.errors import TelsError  # noqa: E402
 from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
 from torchrl_tels.seeds import SeedRNG  # noqa: E402
+from torchrl_tels.training import write_text  # noqa: E402
 from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
 from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, RunFolderClaim  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
@@ -132,7 +133,7 @@ def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
 def open_run_dir(cfg: DictConfig, run: RunState, run_dir: Path) -> RunLogger:
     """Claims ``run_dir`` (created if need be) and writes the resolved config; the run's logger (CSV, wandb)."""
     CLAIMS.append(claim_run_dir(run_dir, resume=cfg.resume, overwrite=cfg.overwrite))
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
                        config=OmegaConf.to_container(cfg, resolve=True), wandb_id=run.wandb_id)
     run.wandb_id = logger.wandb_id
@@ -186,6 +187,8 @@ def train(cfg: DictConfig) -> dict:
                     run.policy_history.setdefault(key, []).append((step + 1, value))
                 logger.log_scalars(scalars, step + 1)
             if (step + 1) % cfg.eval.interval == 0 or step + 1 == cfg.policy.steps:
+                if monitor.failed():
+                    monitor.get()  # a background fit that failed stops the run now, naming why
                 with run.time("eval_s"):  # the final evaluation also records the deployment monitor
                     final = step + 1 == cfg.policy.steps
                     if final:
@@ -243,7 +246,7 @@ def train_seeds(cfg: DictConfig) -> dict:
     logger = open_run_dir(cfg, run, run_dir)
     for c in configs:
         Path(c.run_dir).mkdir(parents=True, exist_ok=True)
-        (Path(c.run_dir) / "config.yaml").write_text(OmegaConf.to_yaml(c, resolve=True))
+        write_text(Path(c.run_dir) / "config.yaml", OmegaConf.to_yaml(c, resolve=True))
     monitors = [make_monitor(c, data, Path(c.run_dir)) for c, data in zip(configs, datas)]
 
     def save(**modules):

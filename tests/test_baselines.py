@@ -167,6 +167,3 @@ def test_authors_actor_lr_follows_a_cosine_decay():
         lrs.append(optim.param_groups[0]["lr"])
     assert lrs == pytest.approx([3e-4 * 0.5 * (1 + math.cos(math.pi * min(k, 8) / 8)) for k in range(1, 11)])
     assert lrs[-1] == 0.0
-    # the authors' horizon is 1M steps: over a 5k-step run the actor's rate barely moves
-    assert baselines.IQL_AUTHORS_ACTOR["actor_lr_decay_steps"] == 1_000_000
-    assert 0.5 * (1 + math.cos(math.pi * 5000 / 1_000_000)) > 0.9999

@@ -69,3 +69,15 @@ def test_monitor_fitted_in_the_background_is_the_inline_one(tmp_path):
     assert not monitor_in_background(recipe_config(["monitor.background=false"]))
     with pytest.raises(ConfigError, match="monitor.background must be auto, true or false"):
         validate_config(recipe_config(["monitor.background=sometimes"]))
+
+
+def test_a_failed_background_fit_is_one_monitor_error(tmp_path):
+    from torchrl_tels.errors import MonitorError
+    from torchrl_tels.trainer import MonitorFit
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    fit = MonitorFit(recipe_config(["budget=smoke"]), linear_plant(4), blocker / "run", background=True)
+    with pytest.raises(MonitorError, match="the deployment monitor's fit failed: .*Error"):
+        fit.get()
+    assert fit.failed()

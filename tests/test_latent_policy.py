@@ -225,6 +225,7 @@ def test_awr_weight_statistics_match_a_direct_computation():
     assert stats["effective_sample_fraction"] == pytest.approx(sum(w) ** 2 / (len(w) * sum(x * x for x in w)),
                                                                rel=1e-5)
     assert stats["clipped_fraction"] == pytest.approx(sum(x > 5.0 for x in raw) / len(raw))
+    assert 0 < stats["clipped_fraction"] < 1  # the batch has weights on both sides of the clip
     assert (stats["value_min"], stats["value_max"]) == pytest.approx((v.min().item(), v.max().item()), rel=1e-5)
     cells = [(math.floor(x / 4 + 0.5), math.floor(y / 4 + 0.5)) for x, y in xy.tolist()]
     for cell in set(cells):

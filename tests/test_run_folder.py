@@ -47,12 +47,29 @@ def test_claim_is_exclusive_and_released(tmp_path):
         claim_run_dir(folder, resume=False, overwrite=False)
     with claim_run_dir(folder, resume=True, overwrite=False):
         assert (folder / "results.json").exists()  # a resume keeps the run's records
+    (folder / "config.yaml").write_text("seed: 1\n")
+    (folder / "seed0").mkdir()
+    (folder / "seed0" / "results.json").write_text("{}")
     with claim_run_dir(folder, resume=False, overwrite=True):
-        assert not (folder / "results.json").exists()  # an overwrite cannot be taken for the finished run
+        assert [p.name for p in folder.iterdir()] == [LOCK_NAME]  # nothing of the old run mixes with the new one
+    stranger = tmp_path / "project"
+    stranger.mkdir()
+    (stranger / "notes.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="holds files but no run"):
+        claim_run_dir(stranger, resume=False, overwrite=True)  # overwrite deletes only a run's folder
+    assert (stranger / "notes.txt").read_text() == "mine"
     check_run_dir_free(tmp_path / "empty", resume=False, overwrite=False)  # absent: free
     (tmp_path / "empty").mkdir()
     check_run_dir_free(tmp_path / "empty", resume=False, overwrite=False)  # empty (as a sweep job's): free
     assert [p.name for p in folder.iterdir()] == [LOCK_NAME]
+
+
+def test_resume_and_overwrite_must_be_booleans():
+    from benchmarks.step_floor import recipe_config
+    from torchrl_tels.config import validate_config
+
+    with pytest.raises(ConfigError, match="overwrite must be true or false, got 'flase'"):
+        validate_config(recipe_config(["overwrite=flase"]))
 
 
 def test_two_runs_started_at_once_on_one_run_dir(tmp_path):

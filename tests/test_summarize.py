@@ -18,9 +18,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SCORES = {"hopper-medium-v2-10k": [40.0, 50.0, 45.0], "walker2d-medium-v2-10k": [20.0, 35.0, 30.0, 90.0]}
 
 
-def fake_run(folder: Path, dataset: str | None, seed: int, score: float | None) -> Path:
+def fake_run(folder: Path, dataset: str | None, seed: int, score: float | None, alpha: float = 1.0) -> Path:
     folder.mkdir(parents=True)
-    (folder / "config.yaml").write_text(f"seed: {seed}\n")
+    (folder / "config.yaml").write_text(f"seed: {seed}\nthreads: {seed}\nguide:\n  alpha: {alpha}\n"
+                                        f"dataset:\n  name: {dataset}\n")
     if score is not None:
         (folder / "results.json").write_text(json.dumps({"dataset": dataset, "seed": seed,
                                                          "final_normalized_score_mean": score}))
@@ -78,3 +79,19 @@ def test_command_writes_markdown_csv_and_plot(sweep, tmp_path):
     proc = subprocess.run([sys.executable, str(REPO_ROOT / "recipes" / "summarize.py"), str(empty)],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.startswith("error: no finished run") and not any(empty.iterdir())
+
+
+def test_runs_with_other_settings_are_arms_of_their_own(sweep, tmp_path):
+    root, _ = sweep
+    for seed, score in enumerate([10.0, 12.0, 14.0]):  # the same sets and seeds at another alpha
+        fake_run(root / f"alpha_{seed}", "hopper-medium-v2-10k", seed, score, alpha=0.01)
+    out = tmp_path / "table"
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "recipes" / "summarize.py"), str(root), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    text = (out / "summary.md").read_text()
+    assert "## guide.alpha=0.01" in text and "## guide.alpha=1.0" in text  # threads differ too, but say nothing
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    low = [r for r in rows if r["arm"] == "guide.alpha=0.01" and r["dataset"] == "hopper-medium-v2-10k"]
+    assert float(low[0]["mean"]) == pytest.approx(12.0) and low[0]["n"] == "3"
+    assert (out / "summary_arm0.png").exists() and (out / "summary_arm1.png").exists()

@@ -23,6 +23,7 @@ __all__ = [
     "training_config",
     "resolve_device",
     "monitor_fit_options",
+    "available_cpus",
     "resolve_threads",
     "validate_config",
 ]
@@ -89,12 +90,22 @@ def _check_term_weights(cfg) -> None:
             raise ConfigError(f"tsidm.term_weights.{name} must be >= 0, got {weights[name]!r}.")
 
 
+def available_cpus() -> int:
+    """The logical CPUs this process may run on: its affinity (what a SLURM job or ``taskset`` grants), not
+    the whole machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # platforms without sched_getaffinity
+        return os.cpu_count() or 1
+
+
 def resolve_threads(spec) -> int:
-    """torch's intra-op thread count for ``threads``: ``auto`` (or ``None``) is half the logical CPUs, at
-    least 1. Beside another busy process, torch's default of every core ran stage 1 several times slower
-    than one thread (BENCHMARKS.md, "CPU threads"); half leaves a neighbour its share."""
+    """torch's intra-op thread count for ``threads``: ``auto`` (or ``None``) is half the CPUs this process may
+    use (:func:`available_cpus`), at least 1. Beside another busy process, torch's default of every core ran
+    stage 1 several times slower than one thread (BENCHMARKS.md, "CPU threads"); half leaves a neighbour its
+    share."""
     if spec is None or spec == "auto":
-        return max(1, (os.cpu_count() or 1) // 2)
+        return max(1, available_cpus() // 2)
     return int(spec)
 
 
@@ -121,6 +132,10 @@ def resolve_device(spec: str) -> "torch.device":
 def validate_config(cfg) -> None:
     """Raises :class:`ConfigError` naming the first bad entry of a recipe config."""
     resolve_device(cfg.device)
+    for key in ("resume", "overwrite"):
+        value = cfg.get(key, False)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key} must be true or false, got {value!r}.")
     beta = cfg.tsidm.beta
     if beta != "auto":
         if _number(cfg, "tsidm.beta") < 0:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import shutil
 from pathlib import Path
 
 from torchrl_tels.errors import ConfigError
@@ -17,8 +18,6 @@ __all__ = ["LOCK_NAME", "RunFolderClaim", "check_run_dir_free", "claim_run_dir"]
 
 #: the lock file a run holds in its folder; it marks nothing by itself and is never counted as a run's file
 LOCK_NAME = ".tels-run.lock"
-#: what ``overwrite=true`` removes before a fresh run writes: the records that say a run finished or can resume
-RUN_RECORDS = ("results.json", "state.pt")
 
 
 def _run_files(folder: Path) -> list[str]:
@@ -67,9 +66,11 @@ def claim_run_dir(folder: str | os.PathLike, *, resume: bool, overwrite: bool) -
     """Creates ``folder`` and claims it for this process.
 
     Raises :class:`ConfigError` when another live process holds the folder, or when a fresh run
-    (``resume=false``) finds files there and ``overwrite`` is false; with ``overwrite=true`` the
-    old run's records (:data:`RUN_RECORDS`) are removed, so nothing can take it for finished or
-    resume from it. Checked under the lock, so of two runs started at once exactly one proceeds.
+    (``resume=false``) finds files there and ``overwrite`` is false. With ``overwrite=true`` the old
+    run's files are deleted (all of them: its logs, checkpoints and ``seed<k>/`` folders would otherwise
+    mix with the new run's), and only from a folder that holds a run (a ``config.yaml``): ``overwrite``
+    never deletes a folder of other files. Checked under the lock, so of two runs started at once
+    exactly one proceeds.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -80,14 +81,23 @@ def claim_run_dir(folder: str | os.PathLike, *, resume: bool, overwrite: bool) -
         os.close(fd)
         raise ConfigError(f"run_dir {folder} is in use by another running job; choose a new run_dir, or wait for "
                           f"it to end and continue it with resume=true.") from None
+    except OSError as err:  # a file system without locks (some NFS or Lustre mounts)
+        os.close(fd)
+        raise ConfigError(f"run_dir {folder} cannot be locked ({err.strerror or err}): its file system does not "
+                          "support flock; choose a run_dir on a local or lock-capable file system.") from None
     claim = RunFolderClaim(folder, fd)
     if not resume:
         files = _run_files(folder)
         if files and not overwrite:
             claim.release()
             raise _refusal(folder, files)
-        for name in RUN_RECORDS:
-            (folder / name).unlink(missing_ok=True)
+        if files and not (folder / "config.yaml").is_file():
+            claim.release()
+            raise ConfigError(f"run_dir {folder} holds files but no run (no config.yaml): overwrite=true deletes only "
+                              "a run's folder; choose a new run_dir.")
+        for name in files:
+            path = folder / name
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
     os.ftruncate(fd, 0)
     os.write(fd, f"{os.getpid()}\n".encode())
     return claim

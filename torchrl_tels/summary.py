@@ -19,12 +19,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from torchrl_tels import stats
 from torchrl_tels.errors import ConfigError
 from torchrl_tels.run_folder import LOCK_NAME
 
-__all__ = ["RunRecord", "Summary", "collect_runs", "summarize"]
+__all__ = ["RunRecord", "Summary", "arms", "collect_runs", "summarize"]
 
 
 @dataclass
@@ -34,6 +35,18 @@ class RunRecord:
     dataset: str | None = None
     seed: int | None = None
     score: float | None = None       # final_normalized_score_mean
+    settings: dict = field(default_factory=dict)  # what the run computed with, less its dataset and seed
+
+
+#: config entries that say where and how a run executes, or which data and seed: not what sets arms apart
+_NOT_ARM = ("seed", "seeds", "dataset", "run_dir", "resume", "overwrite", "threads", "device", "logger", "checkpoint",
+            "compile", "monitor", "diagnostics", "precision")
+
+
+def _flat(value, prefix: str = "") -> dict:
+    if isinstance(value, dict):
+        return {k: v for key, item in value.items() for k, v in _flat(item, f"{prefix}{key}.").items()}
+    return {prefix[:-1]: json.dumps(value, sort_keys=True)}
 
 
 @dataclass
@@ -76,7 +89,7 @@ class Summary:
                              " ".join(map(str, a["seeds"]))])
         return out.getvalue()
 
-    def plot(self, path: Path) -> Path:
+    def plot(self, path: Path, title: str = "") -> Path:
         import matplotlib
 
         matplotlib.use("Agg")
@@ -91,7 +104,7 @@ class Summary:
             ax.errorbar([i], [row["mean"]], yerr=err, fmt="o", color="C0", capsize=4, zorder=3)
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel("normalized score")
-        ax.set_title("mean and 95 % t-interval over seeds (dots: seeds)", fontsize=9)
+        ax.set_title((f"{title}: " if title else "") + "mean and 95 % t-interval over seeds (dots: seeds)", fontsize=9)
         fig.tight_layout()
         tmp = path.with_name(f".{path.name}.tmp.png")
         fig.savefig(tmp, dpi=120)
@@ -135,13 +148,32 @@ def collect_runs(folders) -> list[RunRecord]:
                     results = json.loads((folder / "results.json").read_text())
                     record.dataset, record.seed = str(results["dataset"]), int(results["seed"])
                     record.score = float(results["final_normalized_score_mean"])
-                except (ValueError, KeyError, TypeError) as err:
-                    raise ConfigError(f"{folder / 'results.json'} is not a run's results: {err!r}.") from None
+                    config = yaml.safe_load(config.read_text()) or {}
+                except (ValueError, KeyError, TypeError, yaml.YAMLError) as err:
+                    raise ConfigError(f"{folder} is not a finished run's folder: {err!r}.") from None
+                record.settings = _flat({k: v for k, v in config.items() if k not in _NOT_ARM}
+                                        | {"dataset": {k: v for k, v in (config.get("dataset") or {}).items()
+                                                       if k not in ("name", "task")}})
             records.append(record)
     return records
 
 
+def arms(records: list[RunRecord]) -> dict[str, list[RunRecord]]:
+    """The finished runs grouped by what they computed with (their config less dataset, seed and how they ran),
+    each group labelled by the settings in which the groups differ ("all runs" when there is one group)."""
+    finished = [r for r in records if r.status == "finished"]
+    groups: dict[tuple, list[RunRecord]] = {}
+    for r in finished:
+        groups.setdefault(tuple(sorted(r.settings.items())), []).append(r)
+    if len(groups) <= 1:
+        return {"all runs": finished}
+    keys = sorted({k for key in groups for k, _ in key})
+    differing = [k for k in keys if len({dict(key).get(k) for key in groups}) > 1]
+    return {", ".join(f"{k}={dict(key).get(k, 'unset')}" for k in differing): runs for key, runs in groups.items()}
+
+
 def summarize(records: list[RunRecord], *, reps: int = 2000, seed: int = 0) -> Summary:
+    """One arm's :class:`Summary` (pass the runs of one of :func:`arms`); runs not finished are listed."""
     finished = [r for r in records if r.status == "finished"]
     summary = Summary(not_finished=[r for r in records if r.status != "finished"])
     by_dataset: dict[str, dict[int, float]] = {}

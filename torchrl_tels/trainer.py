@@ -33,8 +33,8 @@ from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
-from torchrl_tels.config import (check_same_run, monitor_fit_options, resolve_device, resolve_precision,
-                                 resolve_threads, training_config)
+from torchrl_tels.config import (available_cpus, check_same_run, monitor_fit_options, resolve_device,
+                                 resolve_precision, resolve_threads, training_config)
 from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
                                subset_dataset, subset_trajectories, trajectory_ids)
 from torchrl_tels.data.datasets import recorded_env_id
@@ -42,6 +42,7 @@ from torchrl_tels.diagnostics import (action_chain_statistics, awr_weight_statis
                                      latent_statistics, maze_cells, rollout_statistics)
 from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, rollout_episodes, Task,
                                TSIDMEncoderTransform)
+from torchrl_tels.envs.antmaze import ENV_ID as ANTMAZE_ENV_ID
 from torchrl_tels.envs.evaluation import episode_success, eval_env_spaces, success_rate
 from torchrl_tels.envs.monitor import running_mean
 from torchrl_tels.errors import DatasetError, MonitorError, TaskError
@@ -708,9 +709,16 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     )
 
 
+def monitor_data(cfg, data: TensorDictBase) -> TensorDictBase:
+    """The transitions the monitor fits on: all of them, or whole trajectories drawn at random (seeded by the
+    run's seed) up to ``monitor.max_transitions``."""
+    cap = cfg.monitor.get("max_transitions")
+    return subset_trajectories(data, cap, cfg.seed) if cap and len(data) > cap else data
+
+
 def check_monitor_data(cfg, data: TensorDictBase) -> None:
     """Refuses, before anything is written, data with too few trajectories for ``cfg.monitor``'s calibration."""
-    count = int(trajectory_ids(data)[-1]) + 1
+    count = int(trajectory_ids(monitor_data(cfg, data))[-1]) + 1
     need = cfg.monitor.folds if cfg.monitor.calibration == "cross_fit" else 2
     if count < need:
         raise MonitorError(f"the deployment monitor's {cfg.monitor.calibration} calibration needs at least {need} "
@@ -732,8 +740,9 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
     # The ensemble trains on the CPU: in bf16 where that CPU multiplies it natively, unless the run asks for
     # fp32. Paired runs detected and alarmed as fp32 at about half the fit time (benchmarks/results/monitor/MONITOR.md).
     precision = "fp32" if cfg.precision == "fp32" else resolve_precision("auto", "cpu")
+    settings = {k: v for k, v in OmegaConf.to_container(cfg.monitor, resolve=True).items() if k != "background"}
     fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed), "precision": precision,
-                  "monitor": OmegaConf.to_container(cfg.monitor, resolve=True)}
+                  "monitor": settings}
     if cfg.resume and path.is_file():
         monitor = DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
                                          action_dim=data["action"].shape[-1])
@@ -741,12 +750,11 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
             return monitor
     m = cfg.monitor
     options = {**monitor_fit_options(m), "quantile": m.quantile, "seed": cfg.seed, "precision": precision}
-    data = data.cpu()
-    if m.get("max_transitions") and len(data) > m.max_transitions:
-        # Whole trajectories: the held-out calibration splits by trajectory.
-        data = subset_trajectories(data, m.max_transitions, cfg.seed)
-        print(f"deployment monitor: fitted on {len(data)} transitions, whole trajectories drawn at random "
-              f"(monitor.max_transitions={m.max_transitions})")
+    full = len(data)
+    data = monitor_data(cfg, data.cpu())  # whole trajectories: the held-out calibration splits by trajectory
+    if len(data) < full:
+        print(f"deployment monitor: fitted on {len(data)} of {full} transitions, whole trajectories drawn at random "
+              f"(monitor.max_transitions={m.max_transitions})", flush=True)
     clock = time.perf_counter()
     with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
         if m.calibration == "cross_fit":
@@ -760,10 +768,15 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
     return monitor
 
 
-def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str) -> None:
-    """:func:`make_monitor` in a process of its own, on one thread; the monitor lands in ``run_dir/monitor.pt``."""
+def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str, errors) -> None:
+    """:func:`make_monitor` in a process of its own, on one thread; the monitor lands in ``run_dir/monitor.pt``,
+    a failure's message in ``errors``."""
     torch.set_num_threads(1)
-    make_monitor(OmegaConf.create(config), data, Path(run_dir))
+    try:
+        make_monitor(OmegaConf.create(config), data, Path(run_dir))
+    except BaseException as err:  # reported to the parent, which raises it as one MonitorError
+        errors.put(f"{type(err).__name__}: {err}")
+        raise
 
 
 def monitor_in_background(cfg) -> bool:
@@ -771,7 +784,7 @@ def monitor_in_background(cfg) -> bool:
     torch threads leave free."""
     setting = cfg.monitor.get("background", False)
     if setting == "auto":
-        return (os.cpu_count() or 1) > resolve_threads(cfg.threads)
+        return available_cpus() > resolve_threads(cfg.threads)
     return bool(setting)
 
 
@@ -781,23 +794,29 @@ class MonitorFit:
     seeded and its calibration draws on its own generators."""
 
     def __init__(self, cfg, data: TensorDictBase, run_dir: Path, background: bool) -> None:
-        self.path, self._monitor, self._future = run_dir / "monitor.pt", None, None
+        self.path, self._monitor, self._process = run_dir / "monitor.pt", None, None
         self._sizes = {"observation_dim": data["observation"].shape[-1], "action_dim": data["action"].shape[-1]}
         if not background:
             self._monitor = make_monitor(cfg, data, run_dir)
             return
-        from concurrent.futures import ProcessPoolExecutor
+        context = torch.multiprocessing.get_context("spawn")
+        self._errors = context.SimpleQueue()
+        # A daemon: a run that stops early (an error, Ctrl-C) does not wait for the fit.
+        self._process = context.Process(target=_fit_monitor_in_child, daemon=True, args=(
+            OmegaConf.to_container(cfg, resolve=True), data.cpu(), str(run_dir), self._errors))
+        self._process.start()
 
-        self._pool = ProcessPoolExecutor(1, mp_context=torch.multiprocessing.get_context("spawn"))
-        self._future = self._pool.submit(_fit_monitor_in_child, OmegaConf.to_container(cfg, resolve=True),
-                                         data.cpu(), str(run_dir))
+    def failed(self) -> bool:
+        """Whether a background fit has already ended without its monitor (checked without waiting)."""
+        return self._process is not None and not self._process.is_alive() and self._process.exitcode != 0
 
     def get(self) -> DeploymentMonitor:
+        """The monitor; waits for a background fit, and raises :class:`MonitorError` if it failed."""
         if self._monitor is None:
-            try:
-                self._future.result()
-            finally:
-                self._pool.shutdown()
+            self._process.join()
+            if self._process.exitcode != 0:
+                reason = self._errors.get() if not self._errors.empty() else f"exit code {self._process.exitcode}"
+                raise MonitorError(f"the deployment monitor's fit failed: {reason}")
             self._monitor = DeploymentMonitor.load(self.path, **self._sizes)
         return self._monitor
 
@@ -862,8 +881,9 @@ def guide_weight_diagnostics(cfg, stage2: "Stage2", task: Task, indices: torch.T
         return {}
     encoded = stage2.buffer.storage[:]
     encoded = encoded if indices is None else encoded[indices.to(encoded.device)]
+    # Cells of D4RL's AntMaze frame (4-unit cells, the start cell at the origin): only its envs are in that frame.
     regions = (maze_cells(encoded["observation"][:, list(cfg.dataset.delete_xy)])
-               if "maze" in task.name.lower() else None)
+               if task.env_id == ANTMAZE_ENV_ID else None)
     return {"awr_weights": awr_weight_statistics(stage2.guide_loss, encoded, regions)}
 
 

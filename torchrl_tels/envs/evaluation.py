@@ -36,11 +36,12 @@ def make_eval_env(env_id: str, info_keys: tuple[str, ...] = (), **kwargs) -> Gym
     if info_keys:
         # Which entries the env's info has, from one step of the Gymnasium env; every evaluation
         # episode starts with a seeded reset, so this step changes none of them.
-        env._env.reset()
-        _, _, _, _, info = env._env.step(env._env.action_space.sample())
-        keys = [key for key in info_keys if key in info]
-        if keys:
-            env.set_info_dict_reader(default_info_dict_reader(keys))
+        with torch.random.fork_rng(devices=[]):  # the reader's dummy step draws: the caller's RNG stays as it was
+            env._env.reset()
+            _, _, _, _, info = env._env.step(env._env.action_space.sample())
+            keys = [key for key in info_keys if key in info]
+            if keys:
+                env.set_info_dict_reader(default_info_dict_reader(keys))
     return env
 
 
