@@ -167,3 +167,27 @@ def test_authors_actor_lr_follows_a_cosine_decay():
         lrs.append(optim.param_groups[0]["lr"])
     assert lrs == pytest.approx([3e-4 * 0.5 * (1 + math.cos(math.pi * min(k, 8) / 8)) for k in range(1, 11)])
     assert lrs[-1] == 0.0
+
+
+def test_td3bc_reports_both_terms_every_step_and_updates_the_actor_every_other():
+    """The NaN watch stacks a fixed set of terms: a TD3+BC step without an actor update still reports one."""
+    data = load_dataset("hopper-medium-v2-10k")[:512]
+    actor, update, loss = baselines._build_td3bc("observation", 11, _box(3), baselines.HYPERPARAMETERS["td3bc"])
+    actor_params = lambda: [p.detach().clone() for p in loss.actor_network_params.values(True, True)]
+    before = actor_params()
+    reported = []
+    for step in range(4):
+        losses = update(data[step * 64:(step + 1) * 64], step)
+        assert set(losses.keys()) == {"loss_qvalue", "loss_actor"}
+        reported.append(losses["loss_actor"].item())
+        after = actor_params()
+        moved = any(not torch.equal(a, b) for a, b in zip(before, after))
+        assert moved == (step % 2 == 0)  # policy_update_delay 2
+        before = after
+    assert reported[1] == reported[0] and reported[3] == reported[2] and reported[2] != reported[0]
+    from torchrl_tels.training import FiniteWatch
+
+    watch = FiniteWatch("TD3+BC")
+    watch.update(update(data[:64], 4), 4)
+    watch.update(update(data[:64], 5), 5)
+    watch.check()
