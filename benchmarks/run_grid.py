@@ -347,6 +347,18 @@ def _changed_hyperparameters(found: dict) -> list[str]:
     return [f"**Changed from the baselines' defaults:** {', '.join(sorted(changed))}.", ""]
 
 
+def hyperparameter_section() -> list[str]:
+    """Each baseline's settings in each domain, with its ``source`` (where each value comes from, and why a
+    departure was made), as ``benchmarks/baselines.py`` defines them."""
+    lines = ["## The baselines' settings, per domain, and why", ""]
+    for domain, overrides in (("locomotion", {}), ("AntMaze", MAZE_HYPERPARAMETERS), ("Adroit", ADROIT_HYPERPARAMETERS)):
+        for method in ("bc", "td3bc", "iql"):
+            hp = {**HYPERPARAMETERS[method], **overrides.get(method, {})}
+            settings = ", ".join(f"`{k}={v}`" for k, v in hp.items() if k != "source")
+            lines.append(f"- **{LABELS[method]}, {domain}**: {settings}. Source and reasons: {hp['source']}.")
+    return [*lines, ""]
+
+
 def paper_cell(value: tuple) -> str:
     mean, std = value
     return f"{mean:.1f}" + (f" ± {std:.1f}" if std is not None else "")
@@ -436,6 +448,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     lines += flatness_section(found, tasks)
     lines += longer_budget_section(found, longer, tasks, results_dir)
     lines += longest_budget_section(found, longer, tasks, results_dir)
+    lines += hyperparameter_section()
     plots = render_plots(found, tasks, results_dir / "plots")
     if plots:
         lines += ["", "## Figures", ""] + [f"![{p.stem}](plots/{p.name})" for p in plots]
