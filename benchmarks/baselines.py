@@ -158,6 +158,8 @@ HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "tau": 0.005,
         "loss_function": "l2",
         "normalize_observations": True,
+        "reward_scale": 1.0,
+        "reward_bias": 0.0,
         "source": "torchrl sota-implementations/td3_bc/config.yaml; state normalization "
         "(mean/std + 1e-3) from the TD3+BC paper",
     },
