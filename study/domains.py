@@ -158,7 +158,7 @@ def section() -> list[str]:
               ""]
     td3bc = [cell(runs("td3bc", MAZE_TASKS[0], GRID / folder)) for folder, _ in TD3BC_ARMS]
     if any(c != "no runs" for c in td3bc[1:]):
-        lines += [f"**TD3+BC near zero on the mazes.** Its Q term is weighted λ = α / mean|Q| (TD3+BC's Eq. 3): with "
+        lines += [f"**TD3+BC near zero on the mazes.** Its Q term is weighted λ = α / mean|Q| (the TD3+BC paper's normalization): with "
                   "rewards of 0 and 1, Q starts near 0 and λ is large, so the actor chases an untrained Q; with r − 1, "
                   f"as IQL and POR train on AntMaze, |Q| is large from the start and λ small. On {MAZE_TASKS[0]}:", "",
                   "| TD3+BC arm | score |", "|---|---|"]
