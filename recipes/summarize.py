@@ -24,7 +24,8 @@ from torchrl_tels.training import write_text
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folders", nargs="+", type=Path, help="run folders, or folders holding run folders")
-    parser.add_argument("--out", type=Path, default=None, help="where summary.{md,csv,png} go (default: the first folder)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="where summary.{md,csv,png} go (default: the first folder)")
     args = parser.parse_args(argv)
     try:
         records = collect_runs(args.folders)

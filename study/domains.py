@@ -50,7 +50,8 @@ def cell(records: list[dict], success: bool = False) -> str:
     if not records:
         return "no runs"
     centre, low, high = stats.t_interval(scores(records))
-    text = f"**{centre:.1f}** (n=1)" if len(records) == 1 else f"**{centre:.1f}** [{low:.1f}, {high:.1f}] (n={len(records)})"
+    text = (f"**{centre:.1f}** (n=1)" if len(records) == 1
+            else f"**{centre:.1f}** [{low:.1f}, {high:.1f}] (n={len(records)})")
     rates = [r.get("final_success_rate_mean") for r in records]
     if success and None not in rates:
         text += f", success {statistics.mean(rates):.2f}"
@@ -158,9 +159,10 @@ def section() -> list[str]:
               ""]
     td3bc = [cell(runs("td3bc", MAZE_TASKS[0], GRID / folder)) for folder, _ in TD3BC_ARMS]
     if any(c != "no runs" for c in td3bc[1:]):
-        lines += [f"**TD3+BC near zero on the mazes.** Its Q term is weighted λ = α / mean|Q| (the TD3+BC paper's normalization): with "
-                  "rewards of 0 and 1, Q starts near 0 and λ is large, so the actor chases an untrained Q; with r − 1, "
-                  f"as IQL and POR train on AntMaze, |Q| is large from the start and λ small. On {MAZE_TASKS[0]}:", "",
+        lines += [f"**TD3+BC near zero on the mazes.** Its Q term is weighted λ = α / mean|Q| (the TD3+BC paper's "
+                  "normalization): with rewards of 0 and 1, Q starts near 0 and λ is large, so the actor chases an "
+                  "untrained Q; with r − 1, as IQL and POR train on AntMaze, |Q| is large from the start and λ small. "
+                  f"On {MAZE_TASKS[0]}:", "",
                   "| TD3+BC arm | score |", "|---|---|"]
         lines += [f"| {label} | {c} |" for (_, label), c in zip(TD3BC_ARMS, td3bc)]
         lines.append("")
