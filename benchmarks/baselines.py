@@ -183,6 +183,12 @@ MAZE_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
 # One departure from the authors on mazes: states normalized (mean/std + 1e-3, as BC and TD3+BC here). The
 # authors feed raw states for 1M steps; at the grid's 5k, raw states left IQL near 0 on antmaze-umaze 10k and
 # normalized ones near BC (benchmarks/results/iql_raw_states against iql, 3 seeds each; study/REPORT.md, AntMaze).
+# TD3+BC on mazes trains on r - 1, the AntMaze convention of IQL and POR (the TD3+BC paper ran no maze): its
+# Q term's weight alpha / mean|Q| is large while Q sits near 0 on 0/1 rewards, and on antmaze-umaze 10k it scored
+# near 0 with rewards as recorded and far above with r - 1 (benchmarks/results/td3bc_reward_as_recorded, 3 seeds each).
+MAZE_HYPERPARAMETERS["td3bc"] = {"reward_bias": -1.0, "source": (
+    "torchrl sota-implementations/td3_bc/config.yaml; state normalization (mean/std + 1e-3) from the TD3+BC paper; "
+    "rewards r - 1 on mazes, as IQL and POR train AntMaze")}
 MAZE_HYPERPARAMETERS["iql"].update(normalize_observations=True, source=(
     "IQL authors' code for AntMaze (tanh-mean Gaussian actor, state-independent std, actions clipped to "
     "+-(1 - 1e-5), cosine actor lr over 1M steps), with states normalized (theirs are raw); TorchRL's IQLLoss"))
