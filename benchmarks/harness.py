@@ -63,14 +63,15 @@ def write_generated(path: Path, text: str, command: str, check: bool = False) ->
 
 
 def portable(value: Any) -> Any:
-    """``value`` with every path inside the repository made relative to its root and the
-    running interpreter written ``python``; dicts, lists and tuples are converted throughout,
-    so a command line or a hydra override (``run_dir=/abs/...``) is converted inside the string."""
+    """``value`` with every path inside the repository made relative to its root, every path beside it
+    (``../shared/...``, a sibling folder of runs) relative to it too, and the running interpreter written
+    ``python``; dicts, lists and tuples are converted throughout, so a command line or a hydra override
+    (``run_dir=/abs/...``) is converted inside the string."""
     if isinstance(value, Path):
         return repo_relative(value)
     if isinstance(value, str):
         value = value.replace(sys.executable, "python")
-        return value.replace(f"{REPO}{os.sep}", "")
+        return value.replace(f"{REPO}{os.sep}", "").replace(f"{REPO.parent}{os.sep}", f"..{os.sep}")
     if isinstance(value, Mapping):
         return {key: portable(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):

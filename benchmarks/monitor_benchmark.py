@@ -57,7 +57,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from benchmarks.harness import command_line, invocation, machine_description, REPO, repo_relative, run_recipe, \
-    skip_existing, write_generated, write_result
+    portable, skip_existing, write_generated, write_result
 from benchmarks.step_floor import recipe_config
 from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes, split_trajectories, trajectory_ids
 from torchrl_tels.envs import DeploymentMonitor
@@ -572,14 +572,14 @@ def render(runs: dict[str, dict[str, list[dict]]], bf16: dict | None = None) -> 
         seeds = sorted(r["seed"] for r in records)
         machines = sorted({r["machine"].get("cpu", "?") for r in records})
         lines += [f"## {setting}: {first['dataset']} (seeds {seeds}, n = {len(records)})", "",
-                  f"Commands: `{first['command']}` (and the other seeds); machine: {', '.join(machines)}, "
+                  f"Commands: `{portable(first['command'])}` (and the other seeds); machine: {', '.join(machines)}, "
                   f"{first['threads']} torch thread(s). Fit/calibration/test transitions (seed {first['seed']}): "
                   f"{first['sizes']['fit']}/{first['sizes']['calibration']}/{first['sizes']['test']}, trajectories "
                   f"{first['trajectories']['fit']}/{first['trajectories']['calibration']}/"
                   f"{first['trajectories']['test']}.", ""]
         if first.get("policy"):
             scores = [r["policy"]["final_normalized_score_mean"] for r in records]
-            lines += [f"Policy: `{first['policy']['command']}` per seed; final normalized score {_cell(scores)}.", ""]
+            lines += [f"Policy: `{portable(first['policy']['command'])}` per seed; final normalized score {_cell(scores)}.", ""]
         detectors = [d for d in (*SCORE_TERMS, *CANDIDATES) if d in first["transition_auroc"][
             next(iter(first["transition_auroc"]))]]
         sets = [name for name in SET_ORDER if name in first["transition_auroc"]]

@@ -19,7 +19,7 @@ import json
 import statistics
 import sys
 
-from benchmarks.harness import recorded_cpu, write_generated
+from benchmarks.harness import portable, recorded_cpu, write_generated
 from study import (beta_rule, budget, eval_reading, heldout_selection, latent_scale, precision,
                    local_q, model_lookahead, model_selection, oracle_choice, realization,
                    summary, value_delivery)
@@ -87,7 +87,7 @@ def arm_table() -> str:
     rows = sorted(arm_runs().items(), key=lambda kv: (kv[0][0], _task_order(kv[0][1]), kv[0][2]))
     for (arm, task, budget_), runs in rows:
         notes += [f"- {arm}, {task}, seed {r['seed']}: {r['note']}" for r in runs if r.get("note")]
-        overrides = sorted({" ".join(r.get("overrides") or []) for r in runs})
+        overrides = sorted({portable(" ".join(r.get("overrides") or [])) for r in runs})
         scores = [r["final_normalized_score_mean"] for r in runs]
         cpus = sorted({recorded_cpu(r) for r in runs})
         cells = [
