@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from torchrl_tels.errors import TelsError
-from torchrl_tels.summary import arms, collect_runs, summarize
+from torchrl_tels.summary import arms, arms_csv, collect_runs, summarize
 from torchrl_tels.training import write_text
 
 
@@ -47,7 +47,7 @@ def main(argv=None) -> int:
         plots = ["summary.png"]
     else:  # a sweep over settings: one table per arm, and a plot each
         markdown = "".join(f"## {label}\n\n{s.markdown()}\n" for label, s in summaries.items())
-        table = _arm_csv(summaries)
+        table = arms_csv(summaries)
         plots = []
         for i, (label, s) in enumerate(summaries.items()):
             s.plot(out / f"summary_arm{i}.png", title=label)
@@ -56,23 +56,6 @@ def main(argv=None) -> int:
     write_text(out / "summary.csv", table)
     print(markdown + f"written: {out / 'summary.md'}, summary.csv, {', '.join(plots)}")
     return 0
-
-
-def _arm_csv(summaries: dict) -> str:
-    """One CSV of every arm's rows, with the arm's label as the first column."""
-    import csv
-    import io
-
-    out = io.StringIO()
-    writer = csv.writer(out)
-    header_written = False
-    for label, summary in summaries.items():
-        rows = list(csv.reader(io.StringIO(summary.csv())))
-        if not header_written:
-            writer.writerow(["arm", *rows[0]])
-            header_written = True
-        writer.writerows([label, *row] for row in rows[1:])
-    return out.getvalue()
 
 
 if __name__ == "__main__":

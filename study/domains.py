@@ -14,14 +14,18 @@ from pathlib import Path
 
 from benchmarks import run_grid
 from torchrl_tels import stats
+from torchrl_tels.record import second_half_mean
 
 GRID = run_grid.DEFAULT_RESULTS
 MAZE_TASKS = ("antmaze-umaze-v0-10k", "antmaze-umaze-diverse-v0-10k")
 ADROIT_TASKS = ("door-human-v1", "pen-expert-v1-10k", "door-expert-v1-10k", "hammer-expert-v1-10k",
                 "relocate-expert-v1-10k")
-METHODS = ("tels", "bc", "td3bc", "iql")
-HEADERS = ("TELS (default)", "BC", "TD3+BC", "IQL")
+METHODS = ("tels", "tels_paper", "bc", "td3bc", "iql")
+HEADERS = ("TELS (default)", "TELS (paper's reading)", "BC", "TD3+BC", "IQL")
+BASELINES = ("bc", "td3bc", "iql")
 STUDY_STEPS = 5000
+#: the same grid at a longer budget, for the arms that decide the verdict
+LONGER = (GRID / "long20k", 20000)
 #: the TD3+BC arms on the maze: (results dir, what differs)
 TD3BC_ARMS = (("td3bc_reward_as_recorded", "rewards as recorded (0 and 1)"), (".", "rewards r − 1 (the grid's)"))
 #: the IQL arms that settle the maze baseline: (results dir, what differs)
@@ -32,30 +36,27 @@ IQL_ARMS = (
 )
 
 
-def runs(method: str, task: str, results: Path = GRID) -> list[dict]:
-    """The study-budget runs of ``method`` on ``task`` in ``results``, in seed order."""
+def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS) -> list[dict]:
+    """The runs of ``method`` on ``task`` in ``results`` at ``steps`` policy steps, in seed order."""
     found = []
     for path in sorted((results / method / task).glob("seed*.json")):
         record = json.loads(path.read_text())
-        if record["budget"]["policy_steps"] == STUDY_STEPS:
+        if record["budget"]["policy_steps"] == steps:
             found.append(record)
     return sorted(found, key=lambda r: r["seed"])
 
 
 def scores(records: list[dict]) -> list[float]:
-    return [r["final_normalized_score_mean"] for r in records]
+    """Each run's score as TABLE.md reads it: at the study budget the mean of the last 10 evaluations, at a
+    longer budget the mean of the later half of evaluations (TABLE.md's longer-budget sections)."""
+    return [r["final_normalized_score_mean"] if r["budget"]["policy_steps"] == STUDY_STEPS
+            else second_half_mean(r["evaluations"]) for r in records]
 
 
 def cell(records: list[dict], success: bool = False) -> str:
-    if not records:
-        return "no runs"
-    centre, low, high = stats.t_interval(scores(records))
-    text = (f"**{centre:.1f}** (n=1)" if len(records) == 1
-            else f"**{centre:.1f}** [{low:.1f}, {high:.1f}] (n={len(records)})")
     rates = [r.get("final_success_rate_mean") for r in records]
-    if success and None not in rates:
-        text += f", success {statistics.mean(rates):.2f}"
-    return text
+    note = f"success {statistics.mean(rates):.2f}" if success and records and None not in rates else ""
+    return stats.interval_cell(scores(records), note)
 
 
 def relation(a: list[float], b: list[float]) -> str:
@@ -85,31 +86,37 @@ def expert_ceiling(task: str) -> dict | None:
 
 
 def verdict_lines() -> list[str]:
-    """One sentence per domain, from the numbers: TELS against the best baseline on each set."""
+    """One sentence per domain and budget, from the numbers: TELS against the best baseline on each set."""
     lines = []
+    budgets = (("the study budget", GRID, STUDY_STEPS), (f"{LONGER[1] // 1000}k steps", *LONGER))
     for label, tasks in (("AntMaze", MAZE_TASKS), ("Adroit", ADROIT_TASKS)):
-        parts, ran = [], 0
-        for task in tasks:
-            tels = scores(runs("tels", task))
-            best = max(("bc", "td3bc", "iql"), key=lambda m: statistics.mean(scores(runs(m, task)) or [-1e9]))
-            other = scores(runs(best, task))
-            if not tels or not other:
-                continue
-            ran += 1
-            parts.append(f"{task}: TELS {statistics.mean(tels):.1f} (n={len(tels)}), {relation(tels, other)} "
-                         f"{run_grid.LABELS[best]} {statistics.mean(other):.1f} (n={len(other)})")
-        missing = len(tasks) - ran
-        lines.append(f"**{label}** at the study budget: " + ("; ".join(parts) if parts else "no set has both TELS and "
-                     "a baseline yet") + (f"; {missing} of {len(tasks)} sets lack TELS or every baseline" if missing
-                                         else "") + ".")
+        for budget, results, steps in budgets:
+            parts, ran = [], 0
+            for task in tasks:
+                tels = scores(runs("tels", task, results, steps))
+                ran_here = {m: scores(runs(m, task, results, steps)) for m in BASELINES}
+                best = max(BASELINES, key=lambda m: statistics.mean(ran_here[m] or [-1e9]))
+                other = ran_here[best]
+                if not tels or not other:
+                    continue
+                ran += 1
+                parts.append(f"{task}: TELS {statistics.mean(tels):.1f} (n={len(tels)}), {relation(tels, other)} "
+                             f"{run_grid.LABELS[best]} {statistics.mean(other):.1f} (n={len(other)})")
+            if not parts and results is not GRID:
+                continue  # no longer runs in this domain yet
+            missing = len(tasks) - ran
+            lines.append(f"**{label}** at {budget}: " + ("; ".join(parts) if parts else "no set has both TELS and "
+                         "a baseline yet") + (f"; {missing} of {len(tasks)} sets lack TELS or every baseline"
+                                             if missing else "") + ".")
     return lines
 
 
 def _maze_guide_rows() -> list[str]:
-    rows = ["| set | seed | ESS / n | weights at the clip | start cell: data → weight | goal cell: data → weight "
-            "| V on the data | V's batch mean, first → last logged |", "|---|---|---|---|---|---|---|---|"]
-    for task in MAZE_TASKS:
-        for record in runs("tels", task):
+    rows = ["| set | policy steps | seed | ESS / n | weights at the clip | start cell: data → weight "
+            "| goal cell: data → weight | V on the data | V's batch mean, first → last logged |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for task, (results, steps) in ((t, b) for t in MAZE_TASKS for b in ((GRID, STUDY_STEPS), LONGER)):
+        for record in runs("tels", task, results, steps):
             weights = record.get("diagnostics", {}).get("awr_weights")
             if not weights:
                 continue
@@ -118,12 +125,31 @@ def _maze_guide_rows() -> list[str]:
             history = record["diagnostics"].get("guide_history", {}).get("value/state_value", [])
             v = f"{history[0][1]:.1f} (step {history[0][0]}) → {history[-1][1]:.1f} (step {history[-1][0]})" \
                 if history else "not logged"
-            rows.append(f"| {task} | {record['seed']} | {weights['effective_sample_fraction']:.3f} | "
+            rows.append(f"| {task} | {steps:,} | {record['seed']} | {weights['effective_sample_fraction']:.3f} | "
                         f"{weights['clipped_fraction']:.1%} | {start.get('data_share', 0):.1%} → "
                         f"{start.get('weight_share', 0):.1%} | {goal.get('data_share', 0):.1%} → "
                         f"{goal.get('weight_share', 0):.1%} | [{weights['value_min']:.1f}, {weights['value_max']:.1f}] "
                         f"| {v} |")
     return rows if len(rows) > 2 else []
+
+
+def _longer_rows() -> list[str]:
+    """The arms that decide the verdict, at the longer budget, beside their study-budget cells."""
+    results, steps = LONGER
+    rows = []
+    for task in (*MAZE_TASKS, *ADROIT_TASKS):
+        for method in METHODS:
+            longer = runs(method, task, results, steps)
+            if longer:
+                adroit = task in ADROIT_TASKS
+                rows.append(f"| {task} | {run_grid.LABELS[method]} | {cell(runs(method, task), adroit)} | "
+                            f"{cell(longer, adroit)} |")
+    if not rows:
+        return []
+    return ["", f"**At {steps:,} policy steps** (the same protocol, evaluations every 5,000 steps, the score the mean "
+            f"of the later half; [`{results.relative_to(GRID.parent.parent)}`](../{results.relative_to(GRID.parent.parent)})), "
+            "the arms that decide the verdict:", "",
+            f"| set | arm | {STUDY_STEPS:,} steps | {steps:,} steps |", "|---|---|---|---|", *rows]
 
 
 def section() -> list[str]:
@@ -142,8 +168,10 @@ def section() -> list[str]:
         expert = expert_ceiling(task) if adroit else None
         ceiling = (f"{expert['score_mean']:.1f}, success {expert['success_rate']:.2f} (n={expert['episodes']} episodes)"
                    if expert else "—")
-        lines.append(f"| {task} | " + " | ".join(f"{cell(runs(m, task), adroit)} · {_paper(task, m)}"
-                                                 for m in METHODS) + f" | {ceiling} |")
+        lines.append(f"| {task} | " + " | ".join(
+            "the default's (`domain=maze` is Table 11's)" if m == "tels_paper" and not adroit
+            else f"{cell(runs(m, task), adroit)} · {_paper(task, m)}" for m in METHODS) + f" | {ceiling} |")
+    lines += _longer_rows()
     lines += ["", "**Settling the maze baseline.** IQL on the same data and budget, three ways:", "",
               "| IQL arm | " + " | ".join(MAZE_TASKS) + " |", "|---|" + "---|" * len(MAZE_TASKS)]
     for folder, label in IQL_ARMS:

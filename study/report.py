@@ -64,14 +64,8 @@ def _steps(run: dict) -> int:
 
 
 def cell(scores: list[float], note: str = "") -> str:
-    """Mean, 95 % t-interval over seeds and n; the value and n=1 for one seed; "no runs" for none."""
-    if not scores:
-        return "no runs"
-    centre, low, high = stats.t_interval(scores)
-    extra = f"; {note}" if note else ""
-    if len(scores) == 1:
-        return f"**{centre:.1f}** (n=1{extra})"
-    return f"**{centre:.1f}** [{low:.1f}, {high:.1f}] (n={len(scores)}{extra})"
+    """Mean, 95 % t-interval over seeds and n (:func:`torchrl_tels.stats.interval_cell`)."""
+    return stats.interval_cell(scores, note)
 
 
 class Data:

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import importlib.resources
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,13 @@ RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
 def hopper_arrays():
     with importlib.resources.as_file(embedded_dataset_path("hopper-medium-v2-10k")) as path, np.load(path) as data:
         return {key: data[key] for key in data.files}
+
+
+def pytest_configure(config):
+    # One torch thread per xdist worker: the workers already fill the cores, and torch's default
+    # threads thrash when another process is busy.
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

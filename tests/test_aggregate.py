@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from torchrl_tels.stats import iqm, mean, performance_profile, stratified_bootstrap_ci, t_interval, t_quantile
+from torchrl_tels.stats import (interval_cell, iqm, mean, performance_profile, stratified_bootstrap_ci, t_interval,
+                                t_quantile)
 
 
 def test_iqm_cuts_a_quarter_from_each_end():
@@ -68,3 +69,14 @@ def test_t_interval_is_the_mean_plus_minus_t_times_the_standard_error():
     assert centre == 44.0 and low == pytest.approx(44.0 - half, abs=1e-3) and high == pytest.approx(44.0 + half, abs=1e-3)
     single = t_interval([7.0])
     assert single[0] == 7.0 and np.isnan(single[1]) and np.isnan(single[2])
+
+
+def test_interval_cell_prints_the_scipy_interval_and_n():
+    from scipy import stats as scipy_stats
+
+    values = [10.0, 14.0, 21.0]
+    low, high = scipy_stats.t.interval(0.95, df=2, loc=np.mean(values), scale=scipy_stats.sem(values))
+    assert interval_cell(values) == f"**15.0** [{low:.1f}, {high:.1f}] (n=3)"
+    assert interval_cell(values, "success 0.50") == f"**15.0** [{low:.1f}, {high:.1f}] (n=3; success 0.50)"
+    assert interval_cell([7.25]) == "**7.2** (n=1)"
+    assert interval_cell([]) == "no runs"

@@ -1,19 +1,21 @@
 """Every benchmark script starts and says what it is for; the study's RESULTS.md is what its JSONs give.
 
 Each file under ``benchmarks/`` and ``study/`` with a ``__main__`` entry point is run as
-``python -m <module> --help`` from the repository root (the convention its usage line gives); a
-script added later is picked up by the same glob. The scripts start in parallel: most import torch
-and torchrl, which takes seconds. ``study/README.md`` has one row per study script, and its links
+``python -m <module> --help`` from the repository root (the convention its usage line gives), in this
+process; a script added later is picked up by the same glob. ``study/README.md`` has one row per study script, and its links
 resolve.
 """
 from __future__ import annotations
 
 import ast
+import contextlib
+import io
 import os
 import re
+import runpy
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -39,10 +41,34 @@ def _run(*args: str) -> subprocess.CompletedProcess:
                           timeout=120)
 
 
+@dataclass
+class Help:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
 @pytest.fixture(scope="module")
-def helps() -> dict[str, subprocess.CompletedProcess]:
-    with ThreadPoolExecutor(max_workers=min(len(SCRIPTS), max(2, os.cpu_count() or 2))) as pool:
-        return dict(zip(SCRIPTS, pool.map(lambda module: _run(module, "--help"), SCRIPTS)))
+def helps(monkeypatch_module) -> dict[str, Help]:
+    """Each script's ``--help``, run in this process as ``python -m <module> --help`` runs it (its
+    ``__main__`` block, with that argv): a subprocess each would spend its time importing torch."""
+    found = {}
+    for module in SCRIPTS:
+        out, err, code = io.StringIO(), io.StringIO(), None
+        monkeypatch_module.setattr(sys, "argv", [str(REPO / Path(*module.split("."))) + ".py", "--help"])
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                runpy.run_module(module, run_name="__main__", alter_sys=False)
+            except SystemExit as stop:
+                code = stop.code or 0
+        found[module] = Help(1 if code is None else code, out.getvalue(), err.getvalue())
+    return found
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    with pytest.MonkeyPatch.context() as patch:
+        yield patch
 
 
 def _letters(text: str) -> str:

@@ -47,7 +47,7 @@ def test_readme_example_runs_and_its_actor_acts_within_the_envs_bounds(monkeypat
 def test_readme_keeps_the_quick_start_commands_and_the_ci_line():
     text = README.read_text()
     assert "```bash\nbash scripts/bootstrap.sh && .venv/bin/python recipes/tels_offline.py\n```" in text
-    assert _block_after("<!-- ci:test -->", "bash") == "bash scripts/bootstrap.sh && .venv/bin/python -m pytest -q"
+    assert _block_after("<!-- ci:test -->", "bash") == "bash scripts/bootstrap.sh && .venv/bin/python -m pytest -q -n auto --dist loadfile"
 
 
 def test_readme_fits_on_a_front_page_and_links_the_report():

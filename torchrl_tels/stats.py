@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["iqm", "mean", "stratified_bootstrap_ci", "performance_profile", "t_quantile", "t_interval"]
+__all__ = ["interval_cell", "iqm", "mean", "performance_profile", "stratified_bootstrap_ci", "t_interval", "t_quantile"]
 
 
 def _scores(scores) -> np.ndarray:
@@ -109,3 +109,15 @@ def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float
         return centre, math.nan, math.nan
     half = t_quantile(1 - (1 - confidence) / 2, scores.size - 1) * float(scores.std(ddof=1)) / math.sqrt(scores.size)
     return centre, centre - half, centre + half
+
+
+def interval_cell(values: Sequence[float], note: str = "") -> str:
+    """A markdown table cell: the mean in bold, its 95 % t-interval (:func:`t_interval`) and n, with ``note``
+    after n; the value and n=1 for one value; "no runs" for none."""
+    if not len(values):
+        return "no runs"
+    centre, low, high = t_interval(values)
+    extra = f"; {note}" if note else ""
+    if len(values) == 1:
+        return f"**{centre:.1f}** (n=1{extra})"
+    return f"**{centre:.1f}** [{low:.1f}, {high:.1f}] (n={len(values)}{extra})"

@@ -25,7 +25,7 @@ from torchrl_tels import stats
 from torchrl_tels.errors import ConfigError
 from torchrl_tels.run_folder import LOCK_NAME
 
-__all__ = ["RunRecord", "Summary", "arms", "collect_runs", "summarize"]
+__all__ = ["RunRecord", "Summary", "arms", "arms_csv", "collect_runs", "summarize"]
 
 
 @dataclass
@@ -198,3 +198,15 @@ def summarize(records: list[RunRecord], *, reps: int = 2000, seed: int = 0) -> S
             point, low, high = stats.iqm(matrix), math.nan, math.nan
         summary.aggregate = {"iqm": point, "low": low, "high": high, "seeds": common, "datasets": names}
     return summary
+
+
+def arms_csv(summaries: dict[str, Summary]) -> str:
+    """One CSV of every arm's per-dataset rows (:meth:`Summary.csv`), the arm's label as the first column."""
+    out = io.StringIO()
+    writer = csv.writer(out)
+    for i, (label, summary) in enumerate(summaries.items()):
+        header, *rows = csv.reader(io.StringIO(summary.csv()))
+        if i == 0:
+            writer.writerow(["arm", *header])
+        writer.writerows([label, *row] for row in rows)
+    return out.getvalue()
