@@ -9,8 +9,8 @@ arrays, wandb sweep agents and several machines. Run from the repository root::
     python -m benchmarks.run_grid --method=tels --task=walker2d-medium-v2-10k --seed=1   # wandb's ${args} form
     python -m benchmarks.run_grid --grid --seed 0 1 2            # every missing combination, one after another
     python -m benchmarks.run_grid --list --seed 0 1 2 > jobs.txt  # one command per missing run (job arrays)
-    python -m benchmarks.run_grid --table                        # TABLE.md and PNGs from what exists
-    python -m benchmarks.run_grid --table --longer benchmarks/results/long20k   # beside a longer budget
+    python -m benchmarks.run_grid --table                        # TABLE.md and PNGs, beside long20k and long50k
+    python -m benchmarks.run_grid --table --results-dir DIR --longer DIR2       # another grid beside a longer one
     python -m benchmarks.run_grid --method iql ... --set reward_scale=return_range --results-dir DIR  # a baseline option
 
 Methods: ``tels`` (``recipes/tels_offline.py`` in a subprocess, its run folder
@@ -53,6 +53,8 @@ from torchrl_tels.record import second_half_mean
 from torchrl_tels.training import write_text
 
 DEFAULT_RESULTS = REPO / "benchmarks" / "results"
+#: the default grid at longer budgets: ``--table`` on the default results sets it beside them unless --longer says
+DEFAULT_LONGER = (DEFAULT_RESULTS / "long20k", DEFAULT_RESULTS / "long50k")
 DEFAULT_WORK = REPO / "runs" / "benchmarks"
 
 #: TELS with a reduced TS-IDM (paper Table 3): ``tels_<variant>`` trains with ``tsidm.ablation=<variant>``.
@@ -1008,7 +1010,8 @@ def parse_args(argv=None):
     parser.add_argument("--table", action="store_true", help="render TABLE.md and the PNGs from existing results")
     parser.add_argument("--longer", action="append", type=Path, default=[], metavar="DIR",
                         help="with --table: a --results-dir of the same grid at a longer budget, shown beside "
-                             "this one with its curves' flatness (repeatable)")
+                             "this one with its curves' flatness (repeatable; default for the default "
+                             "--results-dir: its long20k and long50k)")
     args = parser.parse_args(argv)
     args.method, args.task = _split(args.method), _split(args.task)
     try:
@@ -1034,6 +1037,8 @@ def parse_args(argv=None):
         parser.error("--set reward_scale applies to locomotion sets; mazes take the IQL paper's r - 1 instead")
     args.results_dir, args.work_dir = args.results_dir.resolve(), args.work_dir.resolve()
     args.longer = [folder.resolve() for folder in args.longer]
+    if args.table and not args.longer and args.results_dir == DEFAULT_RESULTS.resolve():
+        args.longer = [folder for folder in DEFAULT_LONGER if folder.is_dir()]
     missing = [str(folder) for folder in args.longer if not folder.is_dir()]
     if missing:
         parser.error(f"--longer folder(s) not found: {', '.join(missing)}")

@@ -288,6 +288,16 @@ def test_state_normalization_travels_with_the_state_dict():
     torch.testing.assert_close(copy.encode_state(obs), tsidm.encode_state(obs))
 
 
+def test_encode_states_in_chunks_equals_one_pass_and_keeps_leading_dims():
+    tsidm = small_tsidm()
+    observation = torch.randn(4, 7, OBS)
+    whole = tsidm.encode_state(observation).detach()
+    chunked = tsidm.encode_states(observation, chunk_size=3)  # 28 rows: chunks of 3, the last of 1
+    assert chunked.shape == whole.shape == (4, 7, tsidm.latent_state_dim) and not chunked.requires_grad
+    torch.testing.assert_close(chunked, whole, rtol=1e-6, atol=1e-6)
+    assert tsidm.encode_states(torch.empty(0, OBS)).shape == (0, tsidm.latent_state_dim)
+
+
 def test_training_on_hopper_lowers_every_term(hopper_arrays):
     torch.manual_seed(0)
     data = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in hopper_arrays.items()}

@@ -33,8 +33,8 @@ FREEZE_RATIO = 0.25
 def latent_statistics(tsidm: TSIDM, observation: torch.Tensor, next_observation: torch.Tensor) -> dict[str, float]:
     """``latent_rms`` (RMS spread of :math:`z_s` per dimension) and ``latent_step_rms``
     (:math:`\\sqrt{\\mathbb E\\|z_{s'} - z_s\\|^2}`) of a TS-IDM on transitions."""
-    z = tsidm.encode_state(observation)
-    z_next = tsidm.encode_state(next_observation)
+    z = tsidm.encode_states(observation)
+    z_next = tsidm.encode_states(next_observation)
     return {
         "latent_rms": z.var(0).mean().sqrt().item(),
         "latent_step_rms": (z_next - z).pow(2).sum(-1).mean().sqrt().item(),

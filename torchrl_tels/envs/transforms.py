@@ -202,9 +202,8 @@ class TSIDMEncoderTransform(Transform):
                 f"TS-IDM encodes observations of size {self.observation_dim} (last dimension)."
             )
         param = self._encoder_param
-        with torch.no_grad():
-            # Gym observations are often float64 while the encoder is float32.
-            latent = self.tsidm.encode_state(observation.to(device=param.device, dtype=param.dtype))
+        # Gym observations are often float64 while the encoder is float32; a dataset is encoded in chunks.
+        latent = self.tsidm.encode_states(observation.to(device=param.device, dtype=param.dtype))
         return latent.to(observation.device)
 
     def _apply_transform(self, observation: torch.Tensor) -> torch.Tensor:

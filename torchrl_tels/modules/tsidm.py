@@ -241,6 +241,15 @@ class TSIDM(nn.Module):
         """:math:`z_s = \\phi_s(s)` from a raw (unnormalized) observation."""
         return self.embed_state(self.normalize_state(observation))
 
+    @torch.no_grad()
+    def encode_states(self, observation: torch.Tensor, chunk_size: int = 65536) -> torch.Tensor:
+        """:meth:`encode_state` of many observations without gradients, ``chunk_size`` rows at a time: a
+        dataset's worth at once would hold every hidden layer's activations for every row (gigabytes at 1M)."""
+        flat = observation.reshape(-1, observation.shape[-1])
+        latent = torch.cat([self.encode_state(chunk) for chunk in flat.split(chunk_size)]) if len(flat) else (
+            self.encode_state(flat))
+        return latent.reshape(*observation.shape[:-1], latent.shape[-1])
+
     def decode_state(self, latent_state: torch.Tensor) -> torch.Tensor:
         """:math:`\\hat s = \\psi_s(z_s)`, in the normalized state space."""
         return self.state_decoder(latent_state)
