@@ -1,8 +1,9 @@
 """AntMaze and Adroit beside the paper's Tables 1 and 6: the report's section on the sets beyond locomotion.
 
 Reads the baseline grid's result JSONs (``benchmarks/results/<method>/<task>/seed<k>.json``) at the study
-budget (5k policy steps; TELS 3k TS-IDM steps), the IQL variants that settle the maze baseline
-(``benchmarks/results/iql_tanh_normal``, ``iql_raw_states``), the DAPG expert's own score
+budget (5k policy steps; TELS 3k TS-IDM steps) and at 20k (``benchmarks/results/long20k``), the IQL variants
+that settle the maze baseline (``benchmarks/results/iql_tanh_normal``, ``iql_raw_states``), TD3+BC's
+(``td3bc_reward_as_recorded``, ``td3bc_alpha0``), the DAPG expert's own score
 (``benchmarks/results/adroit_expert``) and, for TELS on the mazes, the weights of its guide (Eq. 10) that
 each run records (``diagnostics.awr_weights``, ``diagnostics.guide_history``).
 """
