@@ -118,7 +118,7 @@ def verdict_lines() -> list[str]:
 
 def _maze_guide_rows() -> list[str]:
     rows = ["| set | policy steps | seed | ESS / n | weights at the clip | start cell: data → weight "
-            "| goal cell: data → weight | V on the data | V's batch mean, first → last logged |",
+            "| goal cell: data → weight | V on the data | V's batch mean, first → halfway → last logged |",
             "|---|---|---|---|---|---|---|---|---|"]
     for task, (results, steps) in ((t, b) for t in MAZE_TASKS for b in ((GRID, STUDY_STEPS), LONGER)):
         for record in runs("tels", task, results, steps):
@@ -128,8 +128,8 @@ def _maze_guide_rows() -> list[str]:
             regions = weights.get("regions", {})
             start, goal = regions.get("0,0", {}), regions.get("0,2", {})
             history = record["diagnostics"].get("guide_history", {}).get("value/state_value", [])
-            v = f"{history[0][1]:.1f} (step {history[0][0]}) → {history[-1][1]:.1f} (step {history[-1][0]})" \
-                if history else "not logged"
+            v = " → ".join(f"{value:.1f} (step {step})" for step, value in
+                           (history[0], history[len(history) // 2], history[-1])) if history else "not logged"
             rows.append(f"| {task} | {steps:,} | {record['seed']} | {weights['effective_sample_fraction']:.3f} | "
                         f"{weights['clipped_fraction']:.1%} | {start.get('data_share', 0):.1%} → "
                         f"{start.get('weight_share', 0):.1%} | {goal.get('data_share', 0):.1%} → "
