@@ -15,7 +15,7 @@ from pathlib import Path
 
 from benchmarks import run_grid
 from torchrl_tels import stats
-from torchrl_tels.record import second_half_mean
+from torchrl_tels.record import final_success_rate
 
 GRID = run_grid.DEFAULT_RESULTS
 MAZE_TASKS = ("antmaze-umaze-v0-10k", "antmaze-umaze-diverse-v0-10k")
@@ -51,15 +51,21 @@ def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS)
     return sorted(found, key=lambda r: r["seed"])
 
 
+def _scored(record: dict) -> list[dict]:
+    """The evaluations a run's score averages, as TABLE.md reads them: at the study budget the last 10, at a
+    longer budget the later half (TABLE.md's longer-budget sections)."""
+    evaluations = record["evaluations"]
+    if record["budget"]["policy_steps"] == STUDY_STEPS:
+        return evaluations[-record["final_over_last_n_evaluations"]:]
+    return evaluations[len(evaluations) // 2:]
+
+
 def scores(records: list[dict]) -> list[float]:
-    """Each run's score as TABLE.md reads it: at the study budget the mean of the last 10 evaluations, at a
-    longer budget the mean of the later half of evaluations (TABLE.md's longer-budget sections)."""
-    return [r["final_normalized_score_mean"] if r["budget"]["policy_steps"] == STUDY_STEPS
-            else second_half_mean(r["evaluations"]) for r in records]
+    return [statistics.fmean(e["score"] for e in _scored(r)) for r in records]
 
 
 def cell(records: list[dict], success: bool = False) -> str:
-    rates = [r.get("final_success_rate_mean") for r in records]
+    rates = [final_success_rate(_scored(r)) for r in records]
     note = f"success {statistics.mean(rates):.2f}" if success and records and None not in rates else ""
     return stats.interval_cell(scores(records), note)
 
@@ -99,15 +105,17 @@ def verdict_lines() -> list[str]:
             parts, ran = [], 0
             for task in tasks:
                 tels = scores(runs("tels", task, results, steps))
-                ran_here = {m: scores(runs(m, task, results, steps)) for m in BASELINES}
-                best = max(BASELINES, key=lambda m: statistics.mean(ran_here[m] or [-1e9]))
-                other = ran_here[best]
-                if not tels or not other:
+                ran_here = {m: s for m in BASELINES if (s := scores(runs(m, task, results, steps)))}
+                if not tels or not ran_here:
                     continue
+                best = max(ran_here, key=lambda m: statistics.mean(ran_here[m]))
+                other = ran_here[best]
                 ran += 1
+                among = "" if len(ran_here) == len(BASELINES) else (
+                    f" (the baselines run there: {', '.join(run_grid.LABELS[m] for m in ran_here)})")
                 parts.append(f"{task}: TELS {statistics.mean(tels):.1f} (n={len(tels)}), {relation(tels, other)} "
-                             f"{run_grid.LABELS[best]} {statistics.mean(other):.1f} (n={len(other)})")
-            if not parts and results is not GRID:
+                             f"{run_grid.LABELS[best]} {statistics.mean(other):.1f} (n={len(other)}){among}")
+            if not parts and steps != STUDY_STEPS:
                 continue  # no longer runs in this domain yet
             missing = len(tasks) - ran
             lines.append(f"**{label}** at {budget}: " + ("; ".join(parts) if parts else "no set has both TELS and "
@@ -160,7 +168,10 @@ def _longer_rows() -> list[str]:
                             f"{cell(longer, adroit)} |")
     if not rows:
         return []
-    return ["", f"**At {steps:,} policy steps** (the same protocol, evaluations every 5,000 steps, the score the mean "
+    intervals = sorted({r["budget"]["eval_interval"] for task in (*MAZE_TASKS, *ADROIT_TASKS) for method in METHODS
+                        for r in runs(method, task, results, steps)})
+    return ["", f"**At {steps:,} policy steps** (the same protocol, evaluations every "
+            f"{' or '.join(f'{i:,}' for i in intervals)} steps, the score the mean "
             f"of the later half; [`{results.relative_to(GRID.parent.parent)}`](../{results.relative_to(GRID.parent.parent)})), "
             "the arms that decide the verdict:", "",
             f"| set | arm | {STUDY_STEPS:,} steps | {steps:,} steps |", "|---|---|---|---|", *rows]

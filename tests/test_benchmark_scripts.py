@@ -15,6 +15,8 @@ import re
 import runpy
 import subprocess
 import sys
+import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,14 +56,21 @@ def helps(monkeypatch_module) -> dict[str, Help]:
     ``__main__`` block, with that argv): a subprocess each would spend its time importing torch."""
     found = {}
     for module in SCRIPTS:
-        out, err, code = io.StringIO(), io.StringIO(), None
+        out, err = io.StringIO(), io.StringIO()
         monkeypatch_module.setattr(sys, "argv", [str(REPO / Path(*module.split("."))) + ".py", "--help"])
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            # a script the report imports is already in sys.modules; running it again as __main__ is the point
+            warnings.filterwarnings("ignore", "'.*' found in sys.modules", RuntimeWarning)
             try:
                 runpy.run_module(module, run_name="__main__", alter_sys=False)
+                print("--help returned instead of exiting", file=sys.stderr)
+                code = 1
             except SystemExit as stop:
-                code = stop.code or 0
-        found[module] = Help(1 if code is None else code, out.getvalue(), err.getvalue())
+                code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+            except BaseException:  # one script's failure is its own test's, with its traceback
+                traceback.print_exc(file=sys.stderr)
+                code = 1
+        found[module] = Help(code, out.getvalue(), err.getvalue())
     return found
 
 

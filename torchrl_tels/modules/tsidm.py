@@ -246,8 +246,7 @@ class TSIDM(nn.Module):
         """:meth:`encode_state` of many observations without gradients, ``chunk_size`` rows at a time: a
         dataset's worth at once would hold every hidden layer's activations for every row (gigabytes at 1M)."""
         flat = observation.reshape(-1, observation.shape[-1])
-        chunks = flat.split(chunk_size) if len(flat) else (flat,)
-        latent = torch.cat([self.encode_state(chunk) for chunk in chunks])
+        latent = torch.cat([self.encode_state(chunk) for chunk in flat.split(chunk_size)])
         return latent.reshape(*observation.shape[:-1], latent.shape[-1])
 
     def decode_state(self, latent_state: torch.Tensor) -> torch.Tensor:
