@@ -158,7 +158,7 @@ def _arm_table(heading: str, task: str, arms) -> list[str]:
 def _longer_rows() -> list[str]:
     """The arms that decide the verdict, at the longer budget, beside their study-budget cells."""
     results, steps = LONGER
-    rows = []
+    rows, intervals = [], set()
     for task in (*MAZE_TASKS, *ADROIT_TASKS):
         for method in METHODS:
             longer = runs(method, task, results, steps)
@@ -166,10 +166,10 @@ def _longer_rows() -> list[str]:
                 adroit = task in ADROIT_TASKS
                 rows.append(f"| {task} | {run_grid.LABELS[method]} | {cell(runs(method, task), adroit)} | "
                             f"{cell(longer, adroit)} |")
+                intervals.update(r["budget"]["eval_interval"] for r in longer)
     if not rows:
         return []
-    intervals = sorted({r["budget"]["eval_interval"] for task in (*MAZE_TASKS, *ADROIT_TASKS) for method in METHODS
-                        for r in runs(method, task, results, steps)})
+    intervals = sorted(intervals)
     return ["", f"**At {steps:,} policy steps** (the same protocol, evaluations every "
             f"{' or '.join(f'{i:,}' for i in intervals)} steps, the score the mean "
             f"of the later half; [`{results.relative_to(GRID.parent.parent)}`](../{results.relative_to(GRID.parent.parent)})), "
