@@ -63,11 +63,6 @@ def _steps(run: dict) -> int:
     return run["evaluations"][-1]["step"]
 
 
-def cell(scores: list[float], note: str = "") -> str:
-    """Mean, 95 % t-interval over seeds and n (:func:`torchrl_tels.stats.interval_cell`)."""
-    return stats.interval_cell(scores, note)
-
-
 class Data:
     """Everything the page reads, loaded once."""
 
@@ -179,7 +174,7 @@ def verdict(d: Data) -> list[str]:
 
 
 def _row_cells(scores_of, note_of) -> list[str]:
-    return [cell(scores_of(c), note_of(c)) for c in COLUMNS]
+    return [stats.interval_cell(scores_of(c), note_of(c)) for c in COLUMNS]
 
 
 def table1(d: Data) -> list[str]:
@@ -212,7 +207,7 @@ def table1(d: Data) -> list[str]:
         scores = {"tels_paper": [], "tels_default": [s for _, s in sorted(d.held_out.get("tels", {}).items())],
                   **{m: [s for _, s in sorted(d.held_out.get(m, {}).items())] for m in BASELINES}}
         lines.append(f"| halfcheetah-v5 SAC medium, {HELD_OUT_SIZE // 1000}k (not in Table 1) | ours, study budget | "
-                     + " | ".join(cell(scores[c]) for c in COLUMNS) + " |")
+                     + " | ".join(stats.interval_cell(scores[c]) for c in COLUMNS) + " |")
     else:
         lines.append(f"| halfcheetah-v5 SAC medium, {HELD_OUT_SIZE // 1000}k | no runs |" + " |" * len(COLUMNS))
     no_trend = not_flat.get("no trend detected", [])
@@ -377,7 +372,7 @@ def external(d: Data) -> list[str]:
         + f". Measured {tsrl['measured']}: cite it as \"{tsrl['cite_as']}\" "
         f"([`results/external/{TSRL.name}`](results/external/{TSRL.name})).", "",
         f"**Our baselines are far stronger than the paper's on the same files.** On {strength['task']} our BC scores "
-        f"{cell(ours, steps + ' policy steps')} against Table 1's BC {paper_value:.1f}; already at the study budget our "
+        f"{stats.interval_cell(ours, steps + ' policy steps')} against Table 1's BC {paper_value:.1f}; already at the study budget our "
         f"BC is above Table 1's on {len(above)} of {len(TASKS)} sets. {strength['conclusion']} "
         f"([`results/external/{BASELINE_STRENGTH.name}`](results/external/{BASELINE_STRENGTH.name})).", ""]
 
