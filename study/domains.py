@@ -26,7 +26,7 @@ HEADERS = ("TELS (default)", "TELS (paper's reading)", "BC", "TD3+BC", "IQL")
 BASELINES = ("bc", "td3bc", "iql")
 STUDY_STEPS = 5000
 #: the same grid at a longer budget, for the arms that decide the verdict
-LONGER = (GRID / "long20k", 20000)
+LONGER_BUDGET = (GRID / "long20k", 20000)
 #: the TD3+BC arms on the maze: (results dir, what differs)
 TD3BC_ARMS = (("td3bc_reward_as_recorded", "rewards as recorded (0 and 1)"), (".", "rewards r − 1 (the grid's)"))
 #: the TD3+BC arms on Adroit: (results dir, what differs), on the set where BC reaches the expert
@@ -99,7 +99,7 @@ def expert_ceiling(task: str) -> dict | None:
 def verdict_lines() -> list[str]:
     """One sentence per domain and budget, from the numbers: TELS against the best baseline on each set."""
     lines = []
-    budgets = (("the study budget", GRID, STUDY_STEPS), (f"{LONGER[1] // 1000}k steps", *LONGER))
+    budgets = (("the study budget", GRID, STUDY_STEPS), (f"{LONGER_BUDGET[1] // 1000}k steps", *LONGER_BUDGET))
     for label, tasks in (("AntMaze", MAZE_TASKS), ("Adroit", ADROIT_TASKS)):
         for budget, results, steps in budgets:
             parts, ran = [], 0
@@ -128,7 +128,7 @@ def _maze_guide_rows() -> list[str]:
     rows = ["| set | policy steps | seed | ESS / n | weights at the clip | start cell: data → weight "
             "| goal cell: data → weight | V on the data | V's batch mean, first → halfway → last logged |",
             "|---|---|---|---|---|---|---|---|---|"]
-    for task, (results, steps) in ((t, b) for t in MAZE_TASKS for b in ((GRID, STUDY_STEPS), LONGER)):
+    for task, (results, steps) in ((t, b) for t in MAZE_TASKS for b in ((GRID, STUDY_STEPS), LONGER_BUDGET)):
         for record in runs("tels", task, results, steps):
             weights = record.get("diagnostics", {}).get("awr_weights")
             if not weights:
@@ -157,7 +157,7 @@ def _arm_table(heading: str, task: str, arms) -> list[str]:
 
 def _longer_rows() -> list[str]:
     """The arms that decide the verdict, at the longer budget, beside their study-budget cells."""
-    results, steps = LONGER
+    results, steps = LONGER_BUDGET
     rows, intervals = [], set()
     for task in (*MAZE_TASKS, *ADROIT_TASKS):
         for method in METHODS:

@@ -30,7 +30,7 @@ EXTERNAL = summary.HERE / "results" / "external"
 TSRL = EXTERNAL / "tsrl_hopper_medium_10k.json"
 BASELINE_STRENGTH = EXTERNAL / "baseline_strength.json"
 GRID = summary.GRID
-LONGER = run_grid.DEFAULT_LONGER  # the baseline grid at longer budgets (BENCHMARKS.md, "Longer runs")
+LONGER_FOLDERS = run_grid.DEFAULT_LONGER  # the baseline grid at longer budgets (BENCHMARKS.md, "Longer runs")
 TASKS = summary.TASKS
 BASELINES = ("bc", "td3bc", "iql")
 #: The default (``domain=mujoco``) at the study budget: latent_scale's "preset" arm, ``alpha1``.
@@ -68,7 +68,7 @@ class Data:
 
     def __init__(self):
         self.grid = run_grid.load_results(GRID)
-        longer = {folder: run_grid.load_results(folder) for folder in LONGER}
+        longer = {folder: run_grid.load_results(folder) for folder in LONGER_FOLDERS}
         tasks = [t for t in run_grid.TASKS if t in self.grid] + sorted(t for t in self.grid if t not in run_grid.TASKS)
         self.picks = run_grid.longest_budget_picks(self.grid, longer, tasks, GRID)
         self.longest_matrices = run_grid.longest_budget_matrices(self.picks)

@@ -10,10 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from tests.recipe_process import DRIVER, RECIPE, REPO_ROOT
 from torchrl_tels.data import embedded_dataset_path
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
 
 
 @pytest.fixture
@@ -27,6 +25,14 @@ def pytest_configure(config):
     # threads thrash when another process is busy.
     if os.environ.get("PYTEST_XDIST_WORKER"):
         torch.set_num_threads(1)
+
+
+@pytest.fixture
+def driver(tmp_path) -> Path:
+    """``tests/recipe_process.DRIVER`` written out: runs the recipe with one fault injected."""
+    path = tmp_path / "driver.py"
+    path.write_text(DRIVER)
+    return path
 
 
 @pytest.fixture(autouse=True)

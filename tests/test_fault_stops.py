@@ -2,7 +2,7 @@
 and a compiled run resumes bitwise.
 
 Real ``recipes/tels_offline.py`` processes, faults injected at an exact step by the driver of
-``tests/test_resume.py`` (which patches one library function and runs the unchanged recipe).
+``tests/recipe_process.py`` (which patches one library function and runs the unchanged recipe).
 """
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import signal
 import pytest
 import torch
 
-from tests.test_resume import FAST, assert_same_run, driver, load_training_state, run  # noqa: F401 (fixture)
+from tests.recipe_process import FAST, assert_same_run, run
+from torchrl_tels.training import load_training_state
 
 pytestmark = pytest.mark.slow
 

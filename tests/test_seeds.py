@@ -16,7 +16,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from tests.test_resume import _env, DRIVER, RECIPE, REPO_ROOT
+from tests.recipe_process import DRIVER, RECIPE, recipe_env, REPO_ROOT
 from torchrl_tels.modules import make_latent_value, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss
 from torchrl_tels.seeds import SeedRNG, StackedLoss
@@ -109,7 +109,7 @@ BASE = ["budget=smoke", "threads=1", "device=cpu", "precision=fp32", "tsidm.beta
 def _recipe(run_dir: Path, *overrides: str, driver: tuple | None = None) -> subprocess.CompletedProcess:
     head = [sys.executable, str(RECIPE)] if driver is None else [sys.executable, str(driver[0]), str(RECIPE),
                                                                    driver[1], driver[2]]
-    return subprocess.run([*head, *BASE, f"run_dir={run_dir}", *overrides], cwd=REPO_ROOT, env=_env(),
+    return subprocess.run([*head, *BASE, f"run_dir={run_dir}", *overrides], cwd=REPO_ROOT, env=recipe_env(),
                           capture_output=True, text=True, timeout=300)
 
 
@@ -196,7 +196,7 @@ def test_bad_seeds_are_refused(overrides, message):
 
 def test_bad_seeds_stop_the_recipe_before_run_dir(tmp_path):
     proc = subprocess.run([sys.executable, str(RECIPE), "budget=smoke", f"run_dir={tmp_path / 'run'}", "seeds=[0,0]"],
-                          cwd=REPO_ROOT, env=_env(), capture_output=True, text=True, timeout=120)
+                          cwd=REPO_ROOT, env=recipe_env(), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "must not repeat" in proc.stderr and proc.stderr.count("error:") == 1, proc.stderr[-1000:]
     assert not (tmp_path / "run").exists()
