@@ -134,7 +134,7 @@ class NearestStateDistance(nn.Module):
 
     Stores up to ``max_states`` of the data's states (a seeded random subset beyond that), each
     dimension normalized by the data's mean and standard deviation. The distance is computed as
-    :math:`\sqrt{\max(0, \|x\|^2 + \|b\|^2 - 2 x \cdot b)}`, which traces and exports; a call
+    :math:`\sqrt{\max(0, \|x\|^2 + \min_b (\|b\|^2 - 2 x \cdot b))}`, which traces and exports; a call
     builds a (batch, bank) matrix, so score large sets in batches (the monitor's ``_data_scores`` does).
 
     Args:
@@ -174,8 +174,10 @@ class NearestStateDistance(nn.Module):
         """Distance of each state (shape ``(*batch, observation_dim)``) to the bank, shape ``batch``."""
         batch = state.shape[:-1]
         x = ((state.to(self.bank.dtype) - self.obs_loc) / self.obs_scale).reshape(-1, self.bank.shape[-1])
-        squared = x.pow(2).sum(-1, keepdim=True) + self.bank_sq - 2.0 * x @ self.bank.T
-        return squared.amin(-1).clamp_min(0.0).sqrt().reshape(batch)
+        # min_b ||x - b||^2 = ||x||^2 + min_b (||b||^2 - 2 x.b): one fused product and one pass over the
+        # (batch, bank) matrix, where the expanded sum made four.
+        closest = torch.addmm(self.bank_sq, x, self.bank.T, alpha=-2.0).amin(-1)
+        return (x.pow(2).sum(-1) + closest).clamp_min(0.0).sqrt().reshape(batch)
 
     def extra_repr(self) -> str:
         return f"states={self.bank.shape[0]}, observation_dim={self.bank.shape[1]}"
