@@ -45,8 +45,9 @@ from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
 
 def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int, apply_to: torch.Tensor) -> torch.Tensor:
     """BC fitted on the run's training transitions, then applied to ``apply_to``: the error the actor's chain has to beat."""
+    policy = train_bc(observation, action, steps, seed)  # trained with gradients, applied without
     with torch.no_grad():
-        return train_bc(observation, action, steps, seed)(apply_to)
+        return policy(apply_to)
 
 
 def train_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int):
