@@ -13,7 +13,8 @@ own transitions into its parts:
 * ``mean_action``: the dataset's mean action for every state;
 * ``bc``: an MLP fitted to (s, a) by MSE on the same transitions (torchrl MLP, 256x256, 5k Adam steps);
 
-and the guide's latent error ||π_g(z) - z'||² next to the size of the step
+the same errors over the action entries at a bound (exactly ±1) and inside, and the guide's latent error
+||π_g(z) - z'||² next to the size of the step
 ||z' - z||² it has to predict, with the size and direction of the step it proposes
 (``torchrl_tels.diagnostics.action_chain_statistics``). All errors are mean squared over action
 dimensions; ``acting`` names the prediction the actor acts with (``reencode`` or ``guide``). A run
@@ -82,6 +83,11 @@ def training_rows(data: TensorDict, dataset_cfg: dict, seed: int) -> torch.Tenso
     return kept
 
 
+def _masked_mse(prediction: torch.Tensor, action: torch.Tensor, mask: torch.Tensor) -> float | None:
+    """Mean squared error over the action entries ``mask`` selects; None where it selects none."""
+    return (prediction - action)[mask].pow(2).mean().item() if mask.any() else None
+
+
 def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
     config = yaml.safe_load((run_dir / "config.yaml").read_text())
     data = load_dataset(config["dataset"]["name"])
@@ -106,6 +112,7 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
             "mean_action": action[train].mean(0).expand_as(action),
         }
     predictions["bc"] = fit_bc(observation[train], action[train], bc_steps, seed, apply_to=observation)
+    at_bound = action.abs() == 1
     splits = {"train": train} if train.all() else {"train": train, "held_out": ~train}
     record = {"dataset": config["dataset"]["name"], "transitions": {k: int(m.sum()) for k, m in splits.items()},
               "acting": "reencode" if config["guide"].get("reencode_proposal") else "guide"}
@@ -115,6 +122,13 @@ def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
         guide_error = (proposal[rows] - z_next[rows]).pow(2).sum(-1).mean()
         record[split] = {
             "action_mse": {name: (pred[rows] - action[rows]).pow(2).mean().item() for name, pred in predictions.items()},
+            # Where the data's action sits at a bound (|a| = 1) the plant may not show it in s' (a joint at its
+            # stop moves the same under any push past it), so inverse dynamics cannot recover it and BC can.
+            "at_bound_share": at_bound[rows].float().mean().item(),
+            "action_mse_at_bound": {name: _masked_mse(pred[rows], action[rows], at_bound[rows])
+                                    for name, pred in predictions.items()},
+            "action_mse_inside": {name: _masked_mse(pred[rows], action[rows], ~at_bound[rows])
+                                  for name, pred in predictions.items()},
             "latent_step_sq": step.item(),
             "guide_latent_error_sq": guide_error.item(),
             "guide_error_over_step": (guide_error / step).item(),
