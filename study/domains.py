@@ -5,7 +5,8 @@ budget (5k policy steps; TELS 3k TS-IDM steps) and at 20k (``benchmarks/results/
 that settle the maze baseline (``benchmarks/results/iql_tanh_normal``, ``iql_raw_states``), TD3+BC's
 (``td3bc_reward_as_recorded``, ``td3bc_alpha0``), the DAPG expert's own score
 (``benchmarks/results/adroit_expert``) and, for TELS on the mazes, the weights of its guide (Eq. 10) that
-each run records (``diagnostics.awr_weights``, ``diagnostics.guide_history``).
+each run records (``diagnostics.awr_weights``, ``diagnostics.guide_history``), and the same guide with
+uniform weights (``study/results/maze_alpha0``).
 """
 from __future__ import annotations
 
@@ -33,6 +34,12 @@ TD3BC_ARMS = (("td3bc_reward_as_recorded", "rewards as recorded (0 and 1)"), (".
 ADROIT_TD3BC_TASK = "door-expert-v1-10k"
 ADROIT_TD3BC_ARMS = (("td3bc_alpha0", "α = 0: behaviour cloning through TD3+BC's code"),
                      (".", "α = 2.5, the TD3+BC paper's (the grid's)"))
+#: TELS's maze guide with uniform weights, α = 0 in Eq. 10 (``study.run_choice --name maze_alpha0``), paired by seed
+#: with the grid's TELS (α = 10) on the same TS-IDM
+MAZE_ALPHA0 = Path(__file__).resolve().parent / "results" / "maze_alpha0"
+#: ``study.action_error`` on the maze runs: results/action_error/<prefix>-<set>-seed<k>.json, by arm
+ACTION_ERRORS = Path(__file__).resolve().parent / "results" / "action_error"
+MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k steps"), ("maze_alpha0", "α = 0, 5k steps"))
 #: the IQL arms that settle the maze baseline: (results dir, what differs)
 IQL_ARMS = (
     ("iql_tanh_normal", "TorchRL's TanhNormal actor, raw states"),
@@ -46,16 +53,23 @@ def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS)
     found = []
     for path in sorted((results / method / task).glob("seed*.json")):
         record = json.loads(path.read_text())
-        if record["budget"]["policy_steps"] == steps:
+        if policy_steps(record) == steps:
             found.append(record)
     return sorted(found, key=lambda r: r["seed"])
+
+
+def policy_steps(record: dict) -> int:
+    """A run's policy steps: from the recipe's ``budget`` record, or, where ``study.run_choice`` replaced that
+    field with its budget overrides, the step of the run's last evaluation (the recipe evaluates at the end)."""
+    budget = record["budget"]
+    return int(budget["policy_steps"]) if isinstance(budget, dict) else int(record["evaluations"][-1]["step"])
 
 
 def _scored(record: dict) -> list[dict]:
     """The evaluations a run's score averages, as TABLE.md reads them: at the study budget the last 10, at a
     longer budget the later half (TABLE.md's longer-budget sections)."""
     evaluations = record["evaluations"]
-    if record["budget"]["policy_steps"] == STUDY_STEPS:
+    if policy_steps(record) == STUDY_STEPS:
         return evaluations[-record["final_over_last_n_evaluations"]:]
     return evaluations[len(evaluations) // 2:]
 
@@ -155,6 +169,70 @@ def _arm_table(heading: str, task: str, arms) -> list[str]:
             *(f"| {label} | {c} |" for (_, label), c in zip(arms, cells)), ""]
 
 
+def _maze_alpha0_rows() -> list[str]:
+    """The maze guide's weighting tested: α = 10 (the grid's TELS) against α = 0 beside BC; nothing before a run."""
+    arms = {task: (runs("tels", task), runs("maze_alpha0", task, MAZE_ALPHA0.parent), runs("bc", task))
+            for task in MAZE_TASKS}
+    if not any(alpha0 for _, alpha0, _ in arms.values()):
+        return []
+    rows = ["**Is the guide's weighting what costs TELS the mazes?** The guide's weights above are few and far "
+            "between (a few per cent of the data carry them), so the guide learns from a few hundred transitions "
+            "where BC learns from all. If that is the cost, uniform weights (α = 0: Eq. 10 becomes the latent "
+            "guide's likelihood on every transition, its T-symmetry term unchanged) bring TELS to BC's level. "
+            "Same seeds, TS-IDM and protocol as the grid's TELS (`python -m study.run_choice --name maze_alpha0 "
+            "--override guide.alpha=0`, budget as the grid's maze TELS):", "",
+            "| set | TELS, α = 10 (the grid's) | TELS, α = 0 | BC | α = 0 − α = 10, paired by seed | α = 0 against BC |",
+            "|---|---|---|---|---|---|"]
+    for task, (weighted, alpha0, bc) in arms.items():
+        by_seed = {r["seed"]: s for r, s in zip(weighted, scores(weighted))}
+        paired = [s - by_seed[r["seed"]] for r, s in zip(alpha0, scores(alpha0)) if r["seed"] in by_seed]
+        change = (f"{statistics.mean(paired):+.1f} ({sum(d > 0 for d in paired)} of {len(paired)} seeds up)"
+                  if paired else "no pairs")
+        rows.append(f"| {task} | {cell(weighted)} | {cell(alpha0)} | {cell(bc)} | {change} | "
+                    f"{relation(scores(alpha0), scores(bc))} BC |")
+    return [*rows, ""]
+
+
+def _arm_score(prefix: str, task: str, seed: int) -> str:
+    records = (runs("tels", task, *LONGER_BUDGET) if prefix == "maze_long20k"
+               else runs("maze_alpha0", task, MAZE_ALPHA0.parent))
+    found = [r for r in records if r["seed"] == seed]
+    return f"{scores(found)[0]:.1f}" if found else "—"
+
+
+def _maze_action_rows() -> list[str]:
+    """Where the maze actor's action error comes from (``study.action_error`` on the saved runs)."""
+    rows, ratios = [], {"all": [], "bound": [], "inside": []}
+    for prefix, label in MAZE_ACTION_ARMS:
+        for task in MAZE_TASKS:
+            short = task.removeprefix("antmaze-").removesuffix("-v0-10k")
+            for path in sorted(ACTION_ERRORS.glob(f"{prefix}-{short}-seed*.json")):
+                seed = int(path.stem.rsplit("seed", 1)[1])
+                train = json.loads(path.read_text())["train"]
+                mse, bound, inside = train["action_mse"], train["action_mse_at_bound"], train["action_mse_inside"]
+                for key, m in zip(ratios, (mse, bound, inside)):
+                    ratios[key].append(m["oracle"] / m["bc"])
+                rows.append(f"| {task} | {label} | {seed} | {_arm_score(prefix, task, seed)} | "
+                            + " | ".join(f"{m['oracle']:.3f} / {m['bc']:.3f}" for m in (mse, bound, inside))
+                            + f" | {mse['guide']:.3f} | {train['guide_error_over_step']:.2f} |")
+    if not rows:
+        return []
+    return ["**Where the maze actor's action error comes from**, on each run's own transitions (`python -m "
+            "study.action_error --run-dir <run> --name <arm>-<set>-seed<k>`): the mean squared action error of "
+            "Eq. (11) fed the true next latent, ψ_a(h_inv(z, φ_s(s'))) (the TS-IDM's own floor), against BC's, "
+            "fitted by MSE on the same transitions; the same over the action entries at a bound (exactly ±1) and "
+            "inside; the actor as it acts; and the guide's latent error over the data's latent step "
+            "(‖π_g(z) − z'‖² / ‖z' − z‖²):", "",
+            "| set | arm | seed | score | Eq. (11) with the true z' / BC | at a bound | inside | actor | "
+            "guide error / step |", "|---|---|---|---|---|---|---|---|---|", *rows, "",
+            f"On the {len(rows)} maze runs read, Eq. (11) fed the true next latent errs "
+            f"{min(ratios['all']):.1f}–{max(ratios['all']):.1f}× BC's error ({min(ratios['bound']):.1f}–"
+            f"{max(ratios['bound']):.1f}× at a bound, {min(ratios['inside']):.1f}–{max(ratios['inside']):.1f}× "
+            "inside): the TS-IDM's inverse dynamics is a floor above BC before the guide proposes anything, where "
+            "on the locomotion runs read it lies at or below BC's ([RESULTS.md, \"Where the action error comes from\"]"
+            "(RESULTS.md#the-latent-scale-fixes-of-eq-7)). Bound entries alone do not explain it.", ""]
+
+
 def _longer_rows() -> list[str]:
     """The arms that decide the verdict, at the longer budget, beside their study-budget cells."""
     results, steps = LONGER_BUDGET
@@ -225,4 +303,4 @@ def section() -> list[str]:
               "cells are the maze's 4-unit cells, the start cell (0, 0) and the goal cell (0, 2):", ""]
     lines += guide if guide else ["No TELS maze run records its guide's weights yet."]
     lines.append("")
-    return lines
+    return lines + _maze_alpha0_rows() + _maze_action_rows()
