@@ -34,12 +34,12 @@ TD3BC_ARMS = (("td3bc_reward_as_recorded", "rewards as recorded (0 and 1)"), (".
 ADROIT_TD3BC_TASK = "door-expert-v1-10k"
 ADROIT_TD3BC_ARMS = (("td3bc_alpha0", "α = 0: behaviour cloning through TD3+BC's code"),
                      (".", "α = 2.5, the TD3+BC paper's (the grid's)"))
-#: TELS's maze guide with uniform weights, α = 0 in Eq. 10 (``study.run_choice --name maze_alpha0``), paired by seed
-#: with the grid's TELS (α = 10) on the same TS-IDM
-MAZE_ALPHA0 = Path(__file__).resolve().parent / "results" / "maze_alpha0"
-#: ``study.action_error`` on the maze runs: results/action_error/<prefix>-<set>-seed<k>.json, by arm
-ACTION_ERRORS = Path(__file__).resolve().parent / "results" / "action_error"
-MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k steps"), ("maze_alpha0", "α = 0, 5k steps"))
+STUDY_RESULTS = Path(__file__).resolve().parent / "results"
+#: TELS's maze guide with uniform weights, α = 0 in Eq. 10 (``study.run_choice --name maze_alpha0``: its runs are
+#: STUDY_RESULTS/maze_alpha0/<task>), paired by seed with the grid's TELS (α = 10) on the same TS-IDM
+MAZE_ALPHA0 = "maze_alpha0"
+#: ``study.action_error`` on the maze runs: STUDY_RESULTS/action_error/<prefix>-<set>-seed<k>.json, by arm
+MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k steps"), (MAZE_ALPHA0, "α = 0, 5k steps"))
 #: the IQL arms that settle the maze baseline: (results dir, what differs)
 IQL_ARMS = (
     ("iql_tanh_normal", "TorchRL's TanhNormal actor, raw states"),
@@ -171,7 +171,7 @@ def _arm_table(heading: str, task: str, arms) -> list[str]:
 
 def _maze_alpha0_rows() -> list[str]:
     """The maze guide's weighting tested: α = 10 (the grid's TELS) against α = 0 beside BC; nothing before a run."""
-    arms = {task: (runs("tels", task), runs("maze_alpha0", task, MAZE_ALPHA0.parent), runs("bc", task))
+    arms = {task: (runs("tels", task), runs(MAZE_ALPHA0, task, STUDY_RESULTS), runs("bc", task))
             for task in MAZE_TASKS}
     if not any(alpha0 for _, alpha0, _ in arms.values()):
         return []
@@ -184,8 +184,8 @@ def _maze_alpha0_rows() -> list[str]:
             "| set | TELS, α = 10 (the grid's) | TELS, α = 0 | BC | α = 0 − α = 10, paired by seed | α = 0 against BC |",
             "|---|---|---|---|---|---|"]
     for task, (weighted, alpha0, bc) in arms.items():
-        by_seed = {r["seed"]: s for r, s in zip(weighted, scores(weighted))}
-        paired = [s - by_seed[r["seed"]] for r, s in zip(alpha0, scores(alpha0)) if r["seed"] in by_seed]
+        by_seed = scores_by_seed(weighted)
+        paired = [s - by_seed[seed] for seed, s in scores_by_seed(alpha0).items() if seed in by_seed]
         change = (f"{statistics.mean(paired):+.1f} ({sum(d > 0 for d in paired)} of {len(paired)} seeds up)"
                   if paired else "no pairs")
         rows.append(f"| {task} | {cell(weighted)} | {cell(alpha0)} | {cell(bc)} | {change} | "
@@ -193,11 +193,8 @@ def _maze_alpha0_rows() -> list[str]:
     return [*rows, ""]
 
 
-def _arm_score(prefix: str, task: str, seed: int) -> str:
-    records = (runs("tels", task, *LONGER_BUDGET) if prefix == "maze_long20k"
-               else runs("maze_alpha0", task, MAZE_ALPHA0.parent))
-    found = [r for r in records if r["seed"] == seed]
-    return f"{scores(found)[0]:.1f}" if found else "—"
+def scores_by_seed(records: list[dict]) -> dict[int, float]:
+    return {r["seed"]: s for r, s in zip(records, scores(records))}
 
 
 def _maze_action_rows() -> list[str]:
@@ -206,13 +203,16 @@ def _maze_action_rows() -> list[str]:
     for prefix, label in MAZE_ACTION_ARMS:
         for task in MAZE_TASKS:
             short = task.removeprefix("antmaze-").removesuffix("-v0-10k")
-            for path in sorted(ACTION_ERRORS.glob(f"{prefix}-{short}-seed*.json")):
+            arm_scores = scores_by_seed(runs("tels", task, *LONGER_BUDGET) if prefix == "maze_long20k"
+                                        else runs(MAZE_ALPHA0, task, STUDY_RESULTS))
+            for path in sorted((STUDY_RESULTS / "action_error").glob(f"{prefix}-{short}-seed*.json")):
                 seed = int(path.stem.rsplit("seed", 1)[1])
                 train = json.loads(path.read_text())["train"]
                 mse, bound, inside = train["action_mse"], train["action_mse_at_bound"], train["action_mse_inside"]
                 for key, m in zip(ratios, (mse, bound, inside)):
                     ratios[key].append(m["oracle"] / m["bc"])
-                rows.append(f"| {task} | {label} | {seed} | {_arm_score(prefix, task, seed)} | "
+                score = f"{arm_scores[seed]:.1f}" if seed in arm_scores else "—"
+                rows.append(f"| {task} | {label} | {seed} | {score} | "
                             + " | ".join(f"{m['oracle']:.3f} / {m['bc']:.3f}" for m in (mse, bound, inside))
                             + f" | {mse['guide']:.3f} | {train['guide_error_over_step']:.2f} |")
     if not rows:
