@@ -1,6 +1,13 @@
 """Costs that stay bounded as data grows: the monitor's fit, the after-training readings, and the plan a run prints."""
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -9,6 +16,7 @@ from torchrl_tels.config import validate_config
 from torchrl_tels.envs.monitor import DeploymentMonitor
 from torchrl_tels.errors import ConfigError
 from torchrl_tels.trainer import diagnostic_indices, make_monitor, print_plan
+from tests.recipe_process import REPO_ROOT
 from tests.test_monitor import linear_plant
 
 
@@ -81,3 +89,48 @@ def test_a_failed_background_fit_is_one_monitor_error(tmp_path):
     with pytest.raises(MonitorError, match="the deployment monitor's fit failed: .*Error"):
         fit.get()
     assert fit.failed()
+
+
+CHILD_OF_A_KILLED_RUN = '''
+import sys, time
+from benchmarks.step_floor import recipe_config
+from tests.test_monitor import linear_plant
+from torchrl_tels.trainer import MonitorFit
+fit = MonitorFit(recipe_config(["budget=smoke", "monitor.steps=1000000"]), linear_plant(6), __import__("pathlib").Path(sys.argv[1]), background=True)
+print(fit._process.pid, flush=True)
+time.sleep(600)
+'''
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_background_fit_ends_with_a_killed_run(tmp_path):
+    """SIGKILL skips a run's exit handlers, which are what stop a daemon child: the fit must end all the same."""
+    def cpu_seconds(pid: int) -> float:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+    def alive(pid: int) -> bool:
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    run = subprocess.Popen([sys.executable, "-c", CHILD_OF_A_KILLED_RUN, str(tmp_path / "run")], cwd=REPO_ROOT,
+                           env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE, text=True)
+    child = None
+    try:
+        child = int(run.stdout.readline())
+        deadline = time.monotonic() + 120
+        while cpu_seconds(child) < 8:  # past its imports and into the ensemble's million steps
+            assert time.monotonic() < deadline, "the background fit never got going"
+            time.sleep(0.2)
+        run.kill()
+        run.wait()
+        deadline = time.monotonic() + 10
+        while alive(child) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not alive(child), "the monitor's fit outlived the run that started it"
+    finally:
+        run.kill()
+        if child is not None and alive(child):
+            os.kill(child, signal.SIGKILL)

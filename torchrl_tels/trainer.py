@@ -17,9 +17,12 @@ here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import dataclasses
 import math
 import os
+import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -768,9 +771,22 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
     return monitor
 
 
-def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str, errors) -> None:
-    """:func:`make_monitor` in a process of its own, on one thread; the monitor lands in ``run_dir/monitor.pt``,
-    a failure's message in ``errors``."""
+def _exit_with_parent(parent: int) -> None:
+    """Ends this process when the run that started it ends, however it ends. A daemon child is stopped only by
+    its parent's own exit handlers, so a run killed by a signal (a scheduler's SIGTERM, SIGKILL, OOM) would leave
+    the fit running on its core and writing into a run folder that may be resumed meanwhile. Linux stops the
+    child itself when asked (``PR_SET_PDEATHSIG``); a parent already gone by then is checked after asking."""
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str, errors, parent: int) -> None:
+    """:func:`make_monitor` in a process of its own, on one thread, that ends with the run; the monitor lands in
+    ``run_dir/monitor.pt``, a failure's message in ``errors``."""
+    _exit_with_parent(parent)
     torch.set_num_threads(1)
     try:
         make_monitor(OmegaConf.create(config), data, Path(run_dir))
@@ -803,7 +819,7 @@ class MonitorFit:
         self._errors = context.SimpleQueue()
         # A daemon: a run that stops early (an error, Ctrl-C) does not wait for the fit.
         self._process = context.Process(target=_fit_monitor_in_child, daemon=True, args=(
-            OmegaConf.to_container(cfg, resolve=True), data.cpu(), str(run_dir), self._errors))
+            OmegaConf.to_container(cfg, resolve=True), data.cpu(), str(run_dir), self._errors, os.getpid()))
         self._process.start()
 
     def failed(self) -> bool:
