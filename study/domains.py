@@ -38,8 +38,20 @@ STUDY_RESULTS = Path(__file__).resolve().parent / "results"
 #: TELS's maze guide with uniform weights, α = 0 in Eq. 10 (``study.run_choice --name maze_alpha0``: its runs are
 #: STUDY_RESULTS/maze_alpha0/<task>), paired by seed with the grid's TELS (α = 10) on the same TS-IDM
 MAZE_ALPHA0 = "maze_alpha0"
-#: ``study.action_error`` on the maze runs: STUDY_RESULTS/action_error/<prefix>-<set>-seed<k>.json, by arm
-MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k steps"), (MAZE_ALPHA0, "α = 0, 5k steps"))
+#: the grid's maze TELS with a stage 1 of 20k TS-IDM steps instead of 3k (``study.run_choice --name
+#: maze_stage1_20k --override tsidm.steps=20000``), the paper's 1000 epochs being 21k-36k steps on these sets
+MAZE_STAGE1 = "maze_stage1_20k"
+#: ``study.action_error`` on the maze runs: STUDY_RESULTS/action_error/<prefix>-<set>-seed<k>.json, by arm:
+#: (prefix, label, where the arm's scores are: method folder, results root, policy steps)
+MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k steps", ("tels", *LONGER_BUDGET)),
+                    (MAZE_ALPHA0, "α = 0, 5k steps", (MAZE_ALPHA0, STUDY_RESULTS, STUDY_STEPS)),
+                    (MAZE_STAGE1, "α = 10, 20k TS-IDM steps, 5k policy steps", (MAZE_STAGE1, STUDY_RESULTS, STUDY_STEPS)))
+#: the default's ``domain=adroit`` with Table 11's α for "other tasks", 0.01, where the default keeps the 1 chosen on
+#: MuJoCo (``study.run_choice --name adroit_alpha0.01 --override guide.alpha=0.01 tsidm.checkpoint=<the grid
+#: run's tsidm.pt>``): paired by seed with the grid's TELS on the same TS-IDM
+ADROIT_ALPHA = "adroit_alpha0.01"
+#: the guide's proposals re-evaluated with their step capped (``study.proposal_cap``): <arm>-<set>-seed<k>.json
+PROPOSAL_CAP = STUDY_RESULTS / "proposal_cap"
 #: the IQL arms that settle the maze baseline: (results dir, what differs)
 IQL_ARMS = (
     ("iql_tanh_normal", "TorchRL's TanhNormal actor, raw states"),
@@ -200,11 +212,10 @@ def scores_by_seed(records: list[dict]) -> dict[int, float]:
 def _maze_action_rows() -> list[str]:
     """Where the maze actor's action error comes from (``study.action_error`` on the saved runs)."""
     rows, ratios = [], {"all": [], "bound": [], "inside": []}
-    for prefix, label in MAZE_ACTION_ARMS:
+    for prefix, label, (method, results, steps) in MAZE_ACTION_ARMS:
         for task in MAZE_TASKS:
             short = task.removeprefix("antmaze-").removesuffix("-v0-10k")
-            arm_scores = scores_by_seed(runs("tels", task, *LONGER_BUDGET) if prefix == "maze_long20k"
-                                        else runs(MAZE_ALPHA0, task, STUDY_RESULTS))
+            arm_scores = scores_by_seed(runs(method, task, results, steps))
             for path in sorted((STUDY_RESULTS / "action_error").glob(f"{prefix}-{short}-seed*.json")):
                 seed = int(path.stem.rsplit("seed", 1)[1])
                 train = json.loads(path.read_text())["train"]
@@ -231,6 +242,62 @@ def _maze_action_rows() -> list[str]:
             "inside): the TS-IDM's inverse dynamics is a floor above BC before the guide proposes anything, where "
             "on the locomotion runs read it lies at or below BC's ([RESULTS.md, \"Where the action error comes from\"]"
             "(RESULTS.md#the-latent-scale-fixes-of-eq-7)). Bound entries alone do not explain it.", ""]
+
+
+def _guide_cells(record: dict | None) -> str:
+    """A run's score, and its guide's proposed latent step over the data's (RMS) and their cosine, at the end."""
+    if record is None:
+        return "— | — | —"
+    diagnostics = record.get("diagnostics", {})
+    return (f"{scores([record])[0]:.1f} | {diagnostics.get('guide_step_ratio', float('nan')):.1f} | "
+            f"{diagnostics.get('guide_step_cosine', float('nan')):.2f}")
+
+
+def _adroit_guide_rows() -> list[str]:
+    """Where the deterministic guide's proposals go on Adroit, under the default's α and Table 11's, and what
+    capping them does to a trained run (``study.proposal_cap``); nothing before a run records its guide."""
+    rows, paired = [], {}
+    for task in ADROIT_TASKS:
+        default = {r["seed"]: r for r in runs("tels", task) if "guide_step_ratio" in r.get("diagnostics", {})}
+        paper_alpha = {r["seed"]: r for r in runs(ADROIT_ALPHA, task, STUDY_RESULTS)}
+        for seed in sorted(set(default) | set(paper_alpha)):
+            rows.append(f"| {task} | {seed} | {_guide_cells(default.get(seed))} | "
+                        f"{_guide_cells(paper_alpha.get(seed))} | {cell(runs('bc', task))} |")
+            if seed in default and seed in paper_alpha:
+                paired.setdefault(task, []).append(scores([paper_alpha[seed]])[0] - scores([default[seed]])[0])
+    if not rows:
+        return []
+    maze = [json.loads(path.read_text())["train"] for path in sorted((STUDY_RESULTS / "action_error").glob("maze_*.json"))]
+    maze_ratio = [m["guide_step_ratio"] for m in maze if "guide_step_ratio" in m]
+    lines = ["**Where the guide's proposals go on Adroit.** Eq. (9)'s guide proposes the next latent z' = π_g(z); "
+             "each run records, at the end of training over its data, the proposed step's RMS over the data's "
+             "(‖π_g(z) − z‖ against ‖φ_s(s') − φ_s(s)‖) and the mean cosine between the two steps "
+             "(`torchrl_tels.diagnostics.action_chain_statistics`)"
+             + (f"; on the {len(maze_ratio)} maze runs read above the ratio is {min(maze_ratio):.2f}–"
+                f"{max(maze_ratio):.2f}" if maze_ratio else "")
+             + ". The default weights Eq. (9)'s value term with α = 1, chosen on MuJoCo; Table 11 gives 0.01 for "
+             "\"other tasks\". Same TS-IDM per seed (`python -m study.run_choice --name adroit_alpha0.01 --override "
+             "guide.alpha=0.01 tsidm.checkpoint=<the grid run>/tsidm.pt`, budget as the grid's Adroit TELS):", "",
+             "| set | seed | α = 1 (default): score | proposed / data step | cosine | α = 0.01: score | "
+             "proposed / data step | cosine | BC |", "|---|---|---|---|---|---|---|---|---|", *rows, ""]
+    if paired:
+        lines += ["α = 0.01 − α = 1, paired by seed: " + "; ".join(
+            f"{task} {statistics.mean(d):+.1f} ({sum(x > 0 for x in d)} of {len(d)} seeds up)"
+            for task, d in paired.items()) + ".", ""]
+    capped = []
+    for path in sorted(PROPOSAL_CAP.glob("tels-*.json")):
+        record, (task, seed) = json.loads(path.read_text()), path.stem.removeprefix("tels-").rsplit("-seed", 1)
+        if task in ADROIT_TASKS:
+            capped.append((task, int(seed), record["scores"]))
+    if capped:
+        caps = list(dict.fromkeys(name for _, _, readings in capped for name in readings))
+        lines += ["The default's trained runs re-evaluated with the guide's step capped at k times the data's RMS "
+                  "latent step (`python -m study.proposal_cap --run-dir <run> --name tels-<set>-seed<k> --caps 0.01 "
+                  "1 2`: no training, the same ten episodes per reading; cap 0.01 is next to no step at all):", "",
+                  "| set | seed | " + " | ".join(caps) + " |", "|---|---|" + "---|" * len(caps),
+                  *(f"| {task} | {seed} | " + " | ".join(f"{readings[c]:.1f}" if c in readings else "—" for c in caps)
+                    + " |" for task, seed, readings in capped), ""]
+    return lines
 
 
 def _longer_rows() -> list[str]:
@@ -303,4 +370,4 @@ def section() -> list[str]:
               "cells are the maze's 4-unit cells, the start cell (0, 0) and the goal cell (0, 2):", ""]
     lines += guide if guide else ["No TELS maze run records its guide's weights yet."]
     lines.append("")
-    return lines + _maze_alpha0_rows() + _maze_action_rows()
+    return lines + _maze_alpha0_rows() + _maze_action_rows() + _adroit_guide_rows()

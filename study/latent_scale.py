@@ -275,7 +275,8 @@ def proposal_cap_table(arms=ACTION_ERROR_ARMS) -> list[str]:
     (``python -m study.proposal_cap``)."""
     labels = dict((arm, label) for label, arm in arms)
     rows, caps = [], []
-    records = run_results(summary.HERE / "results" / "proposal_cap")
+    records = {key: record for key, record in run_results(summary.HERE / "results" / "proposal_cap").items()
+               if key[0] in labels}  # not another study's readings (the Adroit runs: study/domains.py)
     errors = run_results(summary.HERE / "results" / "action_error")
     for record in records.values():
         caps += [name for name in record["scores"] if name not in caps]
