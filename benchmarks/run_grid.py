@@ -120,6 +120,11 @@ def is_maze(task: str) -> bool:
     return task.startswith(MAZE_PREFIXES)
 
 
+#: the grid's Adroit TELS runs under ``domain=adroit``'s former α (1, the ``mujoco`` domain's departure): a results
+#: folder of its own under the grid's, beside ``long20k``
+ADROIT_ALPHA1 = "adroit_alpha1"
+
+
 def is_adroit(task: str) -> bool:
     return task.startswith(ADROIT_PREFIXES)
 
@@ -401,6 +406,11 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
+    if (results_dir / ADROIT_ALPHA1).is_dir():
+        lines += ["", f"Adroit's TELS column waits for runs of `domain=adroit` as it stands (Eq. 9's α = 0.01, "
+                  f"Table 11's): the grid's runs with α = 1, the domain's value before, are in `{ADROIT_ALPHA1}/`, "
+                  "and the default's runs on their TS-IDMs in `study/REPORT.md` (\"Where the guide's proposals go "
+                  "on Adroit\")."]
 
     ablation_tasks = [t for t in tasks if any(m in found[t] for m in ABLATIONS)]
     if ablation_tasks:

@@ -579,11 +579,16 @@ def test_write_text_replaces_whole_file_and_leaves_no_temp(tmp_path, monkeypatch
 
 def test_config_groups_compose_domain_and_budget():
     """The base is the paper; ``domain=mujoco`` departs where README's deviation table says,
-    ``domain=maze`` takes Table 11's AntMaze values, and the budget group only sets lengths."""
+    ``domain=maze`` takes Table 11's AntMaze values, ``domain=adroit`` keeps Table 11's α for other tasks
+    with MuJoCo's other departures, and the budget group only sets lengths."""
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         paper = compose("config", overrides=["domain=paper", "budget=paper"])
         mujoco, maze = compose("config"), compose("config", overrides=["domain=maze", "budget=paper"])
+        adroit = compose("config", overrides=["domain=adroit"])
         smoke = compose("config", overrides=["budget=smoke"])
+    assert (adroit.guide.alpha, adroit.value.expectile, adroit.tsidm.weight_decay) == (0.01, 0.7, 1e-5)
+    assert adroit.guide.alpha != mujoco.guide.alpha and adroit.tsidm.beta == mujoco.tsidm.beta
+    assert adroit.guide.reencode_proposal is True and adroit.guide.mode == "deterministic"
     assert mujoco.guide.mode == "deterministic" and mujoco.guide.reencode_proposal is True
     assert maze.guide.mode == "stochastic" and maze.guide.reencode_proposal is False
     assert paper.tsidm.beta == 1.0 and maze.tsidm.beta == 1.0
