@@ -41,11 +41,15 @@ MAZE_ALPHA0 = "maze_alpha0"
 #: the grid's maze TELS with a stage 1 of 20k TS-IDM steps instead of 3k (``study.run_choice --name
 #: maze_stage1_20k --override tsidm.steps=20000``), the paper's 1000 epochs being 21k-36k steps on these sets
 MAZE_STAGE1 = "maze_stage1_20k"
+#: the same 20k-step TS-IDMs (``tsidm.checkpoint``) under the uniform-weights guide (``--override guide.alpha=0``)
+MAZE_STAGE1_ALPHA0 = "maze_stage1_20k_alpha0"
 #: ``study.action_error`` on the maze runs: STUDY_RESULTS/action_error/<prefix>-<set>-seed<k>.json, by arm:
 #: (prefix, label, where the arm's scores are: (method folder, results root, policy steps), TS-IDM steps)
 MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k policy steps", ("tels", *LONGER_BUDGET), 3000),
                     (MAZE_ALPHA0, "α = 0, 5k policy steps", (MAZE_ALPHA0, STUDY_RESULTS, STUDY_STEPS), 3000),
-                    (MAZE_STAGE1, "α = 10, 5k policy steps", (MAZE_STAGE1, STUDY_RESULTS, STUDY_STEPS), 20000))
+                    (MAZE_STAGE1, "α = 10, 5k policy steps", (MAZE_STAGE1, STUDY_RESULTS, STUDY_STEPS), 20000),
+                    (MAZE_STAGE1_ALPHA0, "α = 0, 5k policy steps", (MAZE_STAGE1_ALPHA0, STUDY_RESULTS, STUDY_STEPS),
+                     20000))
 #: the default's ``domain=adroit`` with Table 11's α for "other tasks", 0.01, where the default keeps the 1 chosen on
 #: MuJoCo (``study.run_choice --name adroit_alpha0.01 --override guide.alpha=0.01 tsidm.checkpoint=<the grid
 #: run's tsidm.pt>``): paired by seed with the grid's TELS on the same TS-IDM
@@ -256,7 +260,8 @@ def _maze_action_rows() -> list[str]:
              "inside; the actor as it acts; and the guide's latent error over the data's latent step "
              "(‖π_g(z) − z'‖² / ‖z' − z‖²). The grid's stage 1 is 3,000 TS-IDM steps; the paper's, 1000 epochs "
              "(Table 10), is about 21,000 on umaze and 36,000 on umaze-diverse (`python -m study.run_choice --name "
-             "maze_stage1_20k --override tsidm.steps=20000`, otherwise the grid's maze TELS):", "",
+             "maze_stage1_20k --override tsidm.steps=20000`, otherwise the grid's maze TELS; with α = 0, the same TS-IDMs "
+             "through `tsidm.checkpoint`, `--name maze_stage1_20k_alpha0`):", "",
              "| set | arm | TS-IDM steps | seed | score | Eq. (11) with the true z' / BC | at a bound | inside | "
              "actor | guide error / step |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
     for tsidm_steps, r in sorted(ratios.items()):
@@ -266,10 +271,12 @@ def _maze_action_rows() -> list[str]:
                    f"inside); the actor as it acts, {span(r['actor'])}× BC's, its guide's squared latent error "
                    f"{span(r['guide'], 2)} of the data's squared step.")
         lines.append(f"- {reading}")
-    paired = [f"{task} seed {seed} {short_stage1[seed]:.1f} → {longer:.1f}"
+    paired = [f"α = {alpha}, {task} seed {seed} {short_stage1[seed]:.1f} → {longer:.1f}"
+              for alpha, short, long in (("10", ("tels", GRID), MAZE_STAGE1), ("0", (MAZE_ALPHA0, STUDY_RESULTS),
+                                                                              MAZE_STAGE1_ALPHA0))
               for task in MAZE_TASKS
-              for short_stage1 in [scores_by_seed(runs("tels", task))]
-              for seed, longer in scores_by_seed(runs(MAZE_STAGE1, task, STUDY_RESULTS)).items()
+              for short_stage1 in [scores_by_seed(runs(short[0], task, short[1]))]
+              for seed, longer in scores_by_seed(runs(long, task, STUDY_RESULTS)).items()
               if seed in short_stage1]
     if paired:
         lines.append("- Scores at 5,000 policy steps, same seed, stage 1 of 3,000 → 20,000 TS-IDM steps: "
