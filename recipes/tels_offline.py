@@ -72,7 +72,7 @@ from torchrl_tels.trainer import (  # noqa: E402
     make_stage2,
     print_plan,
     RunState,
-    skip_stage1,
+    adopt_pretrained_tsidm,
     StackedStage2,
     tsidm_steps,
 )
@@ -255,8 +255,7 @@ def train_seeds(cfg: DictConfig) -> dict:
 
     # Algorithm 1, lines 1-4, for all seeds at once.
     if pretrained is not None:
-        skip_stage1(run)
-        tsidms = [pretrained for _ in seeds]
+        tsidms = [adopt_pretrained_tsidm(cfg, pretrained, run, [c.run_dir for c in configs])] * len(seeds)
     elif run.stage != "tsidm":
         tsidms = [TSIDM.load(Path(c.run_dir) / "tsidm.pt", observation_dim=data["observation"].shape[-1],
                              action_dim=data["action"].shape[-1]) for c, data in zip(configs, datas)]

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.recipe_process import assert_same_run, csv_log, kill_when, outcome, recipe_env, run
+from tests.recipe_process import assert_same_run, assert_same_tsidm, csv_log, kill_when, outcome, recipe_env, run
+from torchrl_tels.modules import TSIDM
 from torchrl_tels.training import load_training_state
 
 pytestmark = pytest.mark.slow
@@ -117,6 +118,10 @@ def test_sigkill_in_stage2_of_a_pretrained_tsidm_run_then_resume(reference, tmp_
     assert f"resuming {tmp_path / 'run'} at policy step 96" in proc.stdout
     assert outcome(tmp_path / "run") == outcome(tmp_path / "whole")
     assert csv_log(tmp_path / "run") == csv_log(tmp_path / "whole")
+    # The run folder holds the TS-IDM it acted with, as a trained run's does, and names where it came from.
+    assert_same_tsidm(tmp_path / "whole" / "tsidm.pt", reference / "tsidm.pt")
+    saved = TSIDM.load(tmp_path / "whole" / "tsidm.pt")
+    assert saved.metadata["checkpoint"] == str(reference / "tsidm.pt")
 
 
 def test_checkpoint_counts_the_time_spent_so_far(tmp_path):

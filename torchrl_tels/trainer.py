@@ -65,6 +65,7 @@ __all__ = [
     "fit_tsidm",
     "fit_tsidm_seeds",
     "check_same_stage1_length",
+    "adopt_pretrained_tsidm",
     "skip_stage1",
     "load_pretrained_tsidm",
     "make_data",
@@ -480,6 +481,17 @@ def load_pretrained_tsidm(cfg, data) -> TSIDM | None:
                       action_dim=data["action"].shape[-1])
 
 
+def adopt_pretrained_tsidm(cfg, pretrained: TSIDM, run: RunState, run_dirs) -> TSIDM:
+    """Starts ``run`` at stage 2 from ``tsidm.checkpoint``'s TS-IDM, copied into each of ``run_dirs`` as ``tsidm.pt``
+    (its source in the metadata), so that a run folder holds every model it acted with: export and the readings of
+    finished runs load ``tsidm.pt`` from the folder, and the checkpoint may move or change after the run."""
+    skip_stage1(run)
+    metadata = {**pretrained.metadata, "checkpoint": str(cfg.tsidm.checkpoint)}
+    for run_dir in run_dirs:
+        pretrained.save(Path(run_dir) / "tsidm.pt", metadata=metadata)
+    return pretrained
+
+
 def skip_stage1(run: RunState) -> None:
     """Moves a run that starts from a pretrained TS-IDM to stage 2, so that its stage-2 checkpoints resume there."""
     if run.stage == "tsidm":
@@ -502,8 +514,7 @@ def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained
     training loss is kept (App. B.5); finished candidates survive an interruption.
     """
     if pretrained is not None:
-        skip_stage1(run)
-        return pretrained
+        return adopt_pretrained_tsidm(cfg, pretrained, run, [run_dir])
     if run.stage != "tsidm":
         return TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
                           action_dim=data["action"].shape[-1])
