@@ -324,6 +324,10 @@ def _adroit_guide_rows() -> list[str]:
              "guide.alpha=0.01 tsidm.checkpoint=<the grid run>/tsidm.pt`, budget as the grid's Adroit TELS):", "",
              "| set | seed | α = 1 (the default before): score | proposed / data step | cosine | α = 0.01 (the default): score | "
              "proposed / data step | cosine | BC |", "|---|---|---|---|---|---|---|---|---|", *rows, ""]
+    lines += ["Per set, over every seed each arm has:", "", "| set | α = 1 (the default before) | α = 0.01 (the default) | BC |",
+              "|---|---|---|---|", *(f"| {task} | {cell(runs('tels', task, ADROIT_ALPHA1), True)} | "
+                                    f"{cell(runs(ADROIT_ALPHA, task, STUDY_RESULTS), True)} | {cell(runs('bc', task), True)} |"
+                                    for task in ADROIT_TASKS), ""]
     if paired:
         lines += ["α = 0.01 − α = 1, paired by seed: " + "; ".join(
             f"{task} {statistics.mean(d):+.1f} ({sum(x > 0 for x in d)} of {len(d)} seeds up)"
