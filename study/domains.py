@@ -15,6 +15,7 @@ import statistics
 from pathlib import Path
 
 from benchmarks import run_grid
+from study.latent_scale import run_results
 from torchrl_tels import stats
 from torchrl_tels.record import final_success_rate
 
@@ -54,10 +55,9 @@ MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k policy steps", (
 #: MuJoCo (``study.run_choice --name adroit_alpha0.01 --override guide.alpha=0.01 tsidm.checkpoint=<the grid
 #: run's tsidm.pt>``): paired by seed with the grid's TELS on the same TS-IDM
 ADROIT_ALPHA = "adroit_alpha0.01"
-#: the Adroit default's runs at the study budget: domain=adroit has kept Table 11's α since the α = 1 runs above
-#: (the default before, now in GRID/adroit_alpha1) showed its guide leaving the data; the arm shares their TS-IDMs
+#: the grid's Adroit TELS runs with α = 1, ``domain=adroit``'s value before it kept Table 11's; the ADROIT_ALPHA arm,
+#: on their TS-IDMs, holds the default's Adroit runs at the study budget
 ADROIT_ALPHA1 = GRID / run_grid.ADROIT_ALPHA1
-DEFAULT_ELSEWHERE = {("tels", task): (ADROIT_ALPHA, STUDY_RESULTS) for task in ADROIT_TASKS}
 #: the guide's proposals re-evaluated with their step capped (``study.proposal_cap``): <arm>-<set>-seed<k>.json
 PROPOSAL_CAP = STUDY_RESULTS / "proposal_cap"
 #: the IQL arms that settle the maze baseline: (results dir, what differs)
@@ -80,9 +80,9 @@ def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS)
 
 def arm_runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS) -> list[dict]:
     """:func:`runs` of the arm a column names: the default's Adroit runs at the study budget are the study's
-    ``adroit_alpha0.01`` arm (``DEFAULT_ELSEWHERE``), every other cell the grid's."""
-    if results == GRID and steps == STUDY_STEPS and (method, task) in DEFAULT_ELSEWHERE:
-        return runs(DEFAULT_ELSEWHERE[method, task][0], task, DEFAULT_ELSEWHERE[method, task][1], steps)
+    ``adroit_alpha0.01`` arm (``ADROIT_ALPHA``), every other cell the grid's."""
+    if method == "tels" and task in ADROIT_TASKS and results == GRID and steps == STUDY_STEPS:
+        return runs(ADROIT_ALPHA, task, STUDY_RESULTS, steps)
     return runs(method, task, results, steps)
 
 
@@ -299,13 +299,15 @@ def _guide_cells(record: dict | None) -> str:
 def _adroit_guide_rows() -> list[str]:
     """Where the deterministic guide's proposals go on Adroit, under the default's α and Table 11's, and what
     capping them does to a trained run (``study.proposal_cap``); nothing before a run records its guide."""
+    arms = {task: (runs("tels", task, ADROIT_ALPHA1), runs(ADROIT_ALPHA, task, STUDY_RESULTS), runs("bc", task))
+            for task in ADROIT_TASKS}
     rows, paired = [], {}
-    for task in ADROIT_TASKS:
-        default = {r["seed"]: r for r in runs("tels", task, ADROIT_ALPHA1)}
-        paper_alpha = {r["seed"]: r for r in runs(ADROIT_ALPHA, task, STUDY_RESULTS)}
+    for task, (alpha1, alpha_paper, bc) in arms.items():
+        default = {r["seed"]: r for r in alpha1}
+        paper_alpha = {r["seed"]: r for r in alpha_paper}
         for seed in sorted(set(default) | set(paper_alpha)):
             rows.append(f"| {task} | {seed} | {_guide_cells(default.get(seed))} | "
-                        f"{_guide_cells(paper_alpha.get(seed))} | {cell(runs('bc', task))} |")
+                        f"{_guide_cells(paper_alpha.get(seed))} | {cell(bc)} |")
             if seed in default and seed in paper_alpha:
                 paired.setdefault(task, []).append(scores([paper_alpha[seed]])[0] - scores([default[seed]])[0])
     if not rows:
@@ -325,18 +327,14 @@ def _adroit_guide_rows() -> list[str]:
              "| set | seed | α = 1 (the default before): score | proposed / data step | cosine | α = 0.01 (the default): score | "
              "proposed / data step | cosine | BC |", "|---|---|---|---|---|---|---|---|---|", *rows, ""]
     lines += ["Per set, over every seed each arm has:", "", "| set | α = 1 (the default before) | α = 0.01 (the default) | BC |",
-              "|---|---|---|---|", *(f"| {task} | {cell(runs('tels', task, ADROIT_ALPHA1), True)} | "
-                                    f"{cell(runs(ADROIT_ALPHA, task, STUDY_RESULTS), True)} | {cell(runs('bc', task), True)} |"
-                                    for task in ADROIT_TASKS), ""]
+              "|---|---|---|---|", *(f"| {task} | " + " | ".join(cell(records, True) for records in task_arms) + " |"
+                                    for task, task_arms in arms.items()), ""]
     if paired:
         lines += ["α = 0.01 − α = 1, paired by seed: " + "; ".join(
             f"{task} {statistics.mean(d):+.1f} ({sum(x > 0 for x in d)} of {len(d)} seeds up)"
             for task, d in paired.items()) + ".", ""]
-    capped = []
-    for path in sorted(PROPOSAL_CAP.glob("tels-*.json")):
-        record, (task, seed) = json.loads(path.read_text()), path.stem.removeprefix("tels-").rsplit("-seed", 1)
-        if task in ADROIT_TASKS:
-            capped.append((task, int(seed), record["scores"]))
+    capped = [(task, seed, record["scores"]) for (arm, task, seed), record in run_results(PROPOSAL_CAP).items()
+              if arm == "tels" and task in ADROIT_TASKS]
     if capped:
         caps = list(dict.fromkeys(name for _, _, readings in capped for name in readings))
         lines += ["The α = 1 runs re-evaluated with the guide's step capped at k times the data's RMS "

@@ -93,10 +93,11 @@ def test_a_failed_background_fit_is_one_monitor_error(tmp_path):
 
 CHILD_OF_A_KILLED_RUN = '''
 import sys, time
+from pathlib import Path
 from benchmarks.step_floor import recipe_config
 from tests.test_monitor import linear_plant
 from torchrl_tels.trainer import MonitorFit
-fit = MonitorFit(recipe_config(["budget=smoke", "monitor.steps=1000000"]), linear_plant(6), __import__("pathlib").Path(sys.argv[1]), background=True)
+fit = MonitorFit(recipe_config(["budget=smoke", "monitor.steps=1000000"]), linear_plant(6), Path(sys.argv[1]), background=True)
 print(fit._process.pid, flush=True)
 time.sleep(600)
 '''
