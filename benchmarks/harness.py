@@ -93,6 +93,12 @@ def invocation() -> str:
 
 
 # ---------------------------------------------------------------- running
+def with_pinned_precision(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` with ``precision=fp32`` unless they name a precision: the recorded results ran in fp32, and
+    the recipe's default (``precision=auto``) would take bf16 on some CPUs."""
+    return [*overrides, *([] if any(o.startswith("precision=") for o in overrides) else ["precision=fp32"])]
+
+
 def run_recipe(overrides: Sequence[str], threads: int | None = None, *, quiet: bool = False) -> list[str]:
     """Runs ``recipes/tels_offline.py`` with ``overrides`` from the repository root; returns its command.
 
@@ -100,9 +106,7 @@ def run_recipe(overrides: Sequence[str], threads: int | None = None, *, quiet: b
     are pinned to it. ``quiet`` hides the recipe's output unless it fails. A failure raises
     :class:`RuntimeError` naming the command.
     """
-    # The recorded results ran in fp32; the recipe's default (precision=auto) would take bf16 on some CPUs.
-    pinned = [] if any(o.startswith("precision=") for o in overrides) else ["precision=fp32"]
-    cmd = [sys.executable, str(RECIPE), *overrides, *pinned]
+    cmd = [sys.executable, str(RECIPE), *with_pinned_precision(overrides)]
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)

@@ -12,6 +12,7 @@ arrays, wandb sweep agents and several machines. Run from the repository root::
     python -m benchmarks.run_grid --table                        # TABLE.md and PNGs, beside long20k and long50k
     python -m benchmarks.run_grid --table --results-dir DIR --longer DIR2       # another grid beside a longer one
     python -m benchmarks.run_grid --method iql ... --set reward_scale=return_range --results-dir DIR  # a baseline option
+    python -m benchmarks.run_grid --grid --method tels ... --work-dir NEW --tsidm-from OLD  # stage 2 again on OLD's TS-IDMs
 
 Methods: ``tels`` (``recipes/tels_offline.py`` in a subprocess, its run folder
 kept at ``<work-dir>/tels/<task>/seed<k>`` and resumed if interrupted),
@@ -48,7 +49,7 @@ import yaml
 from benchmarks.baselines import (ADROIT_HYPERPARAMETERS, check_reward_scale, HYPERPARAMETERS, MAZE_HYPERPARAMETERS,
                                   METHODS as BASELINES, train_baseline)
 from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
-                                skip_existing, write_result)
+                                skip_existing, with_pinned_precision, write_result)
 from torchrl_tels.record import second_half_mean
 from torchrl_tels.training import write_text
 
@@ -160,6 +161,8 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
         cmd.append(f"--device={args.device}")
     if args.threads:
         cmd.append(f"--threads={args.threads}")
+    if args.tsidm_from is not None:
+        cmd.append(f"--tsidm-from={args.tsidm_from}")
     # JSON reads back as YAML with the same value and type (str() would turn 1e-05 and None into strings)
     cmd += [f"--set={key}={value if isinstance(value, str) else json.dumps(value)}" for key, value in args.set.items()]
     return cmd
@@ -190,9 +193,34 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     ]
     if method in ABLATIONS:
         overrides += [f"tsidm.ablation={ABLATIONS[method]}", f"logger.exp_name={method}_{task}_seed{seed}"]
+    if args.tsidm_from is not None and not (run_dir / "state.pt").exists():
+        earlier = earlier_stage1(tels_run_dir(args.tsidm_from, task, seed, method), overrides)
+        if earlier is not None:
+            overrides.append(f"tsidm.checkpoint={earlier}")
     run_recipe(overrides, args.threads)
     results = json.loads((run_dir / "results.json").read_text())
     return {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
+
+
+def earlier_stage1(source: Path, overrides: list[str]) -> Path | None:
+    """``source``'s TS-IDM where that run trained it with the stage-1 settings ``overrides`` give, else ``None``
+    (and why): stage 2 then starts from it as if this run had trained it (``--tsidm-from``)."""
+    from benchmarks.step_floor import recipe_config
+    from torchrl_tels.config import stage1_differences, training_config
+
+    try:
+        saved = yaml.safe_load((source / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        saved = None
+    if not isinstance(saved, dict) or not (source / "tsidm.pt").exists():
+        print(f"--tsidm-from: no finished stage 1 in {source}; this run trains its own", flush=True)
+        return None
+    differences = stage1_differences(saved, training_config(recipe_config(with_pinned_precision(overrides))))
+    if differences:
+        print(f"--tsidm-from: {source}'s stage 1 had other settings ({'; '.join(differences)}); "
+              "this run trains its own", flush=True)
+        return None
+    return source / "tsidm.pt"
 
 
 def _tsidm_matches(run_dir: Path, task: str, seed: int, tsidm_steps: int | None) -> bool:
@@ -1008,6 +1036,10 @@ def parse_args(argv=None):
     parser.add_argument("--results-dir", "--results_dir", type=Path, default=DEFAULT_RESULTS)
     parser.add_argument("--work-dir", "--work_dir", type=Path, default=DEFAULT_WORK,
                         help="TELS run folders, TS-IDM files, wandb logs (default: runs/benchmarks)")
+    parser.add_argument("--tsidm-from", "--tsidm_from", type=Path, default=None, metavar="WORK_DIR",
+                        help="a --work-dir of an earlier grid: each TELS run starts stage 2 from the TS-IDM of "
+                             "its run there (same method, task and seed) where that stage 1 had the same "
+                             "settings, e.g. to rerun stage 2 after one of its defaults changed")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a baseline hyperparameter (benchmarks/baselines.py), e.g. reward_scale=return_range; "
                              "recorded in the result, so give such runs their own --results-dir (repeatable)")
@@ -1046,6 +1078,10 @@ def parse_args(argv=None):
     if args.set.get("reward_scale", 1) != 1 and any(is_maze(t) for t in args.task or []):
         parser.error("--set reward_scale applies to locomotion sets; mazes take the IQL paper's r - 1 instead")
     args.results_dir, args.work_dir = args.results_dir.resolve(), args.work_dir.resolve()
+    if args.tsidm_from is not None:
+        if not args.tsidm_from.is_dir():
+            parser.error(f"--tsidm-from folder not found: {args.tsidm_from}")
+        args.tsidm_from = args.tsidm_from.resolve()
     args.longer = [folder.resolve() for folder in args.longer]
     if args.table and not args.longer and args.results_dir == DEFAULT_RESULTS.resolve():
         args.longer = [folder for folder in DEFAULT_LONGER if folder.is_dir()]

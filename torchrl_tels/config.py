@@ -20,6 +20,7 @@ __all__ = [
     "check_folder_creatable",
     "check_same_run",
     "check_writable_folder",
+    "stage1_differences",
     "training_config",
     "resolve_device",
     "monitor_fit_options",
@@ -348,6 +349,23 @@ def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
             out += _differences(saved.get(key, "<absent>"), current.get(key, "<absent>"), path)
         return out
     return [] if saved == current else [f"{prefix}: {saved!r} -> {current!r}"]
+
+
+#: What decides stage 1, the TS-IDM: a run may start stage 2 from another run's TS-IDM
+#: (``tsidm.checkpoint``) as if it had trained it itself only when these agree.
+STAGE1_KEYS = ("seed", "precision", "dataset", "tsidm")
+
+
+def stage1_differences(saved: Mapping, current: Mapping) -> list[str]:
+    """What differs between two :func:`training_config` records in the settings of stage 1
+    (:data:`STAGE1_KEYS`; where the TS-IDM came from and a warning's threshold aside), as ``"key: saved -> current"``."""
+
+    def stage1(config: Mapping) -> dict:
+        picked = {key: config.get(key) for key in STAGE1_KEYS}
+        picked["tsidm"] = {k: v for k, v in (picked["tsidm"] or {}).items() if k not in ("checkpoint", "warn_steps")}
+        return picked
+
+    return _differences(stage1(_with_added_options(saved, current)), stage1(current))
 
 
 def _with_added_options(saved: Mapping, current: Mapping) -> Mapping:

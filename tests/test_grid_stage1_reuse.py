@@ -1,0 +1,81 @@
+"""``run_grid --tsidm-from``: a TELS run starts stage 2 from an earlier grid's TS-IDM only when that stage 1
+had the same settings (``torchrl_tels.config.stage1_differences``)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+from omegaconf import OmegaConf
+
+from benchmarks import run_grid
+from benchmarks.harness import with_pinned_precision
+from benchmarks.step_floor import recipe_config
+from torchrl_tels.config import stage1_differences, training_config
+
+TASK = "hopper-medium-v2-10k"
+
+
+def _config(*overrides: str) -> dict:
+    return training_config(recipe_config(["precision=fp32", *overrides]))
+
+
+def test_stage1_differences_name_stage1_settings_only():
+    base = _config()
+    assert stage1_differences(base, _config("guide.alpha=0.01", "policy.steps=7", "eval.episodes=3")) == []
+    assert stage1_differences(base, _config("tsidm.checkpoint=/somewhere/tsidm.pt")) == []
+    assert stage1_differences(base, _config("tsidm.beta=1.0")) == ["tsidm.beta: 0.01 -> 1.0"]
+    steps = base["tsidm"]["steps"]
+    assert stage1_differences(base, _config("seed=3", "tsidm.steps=9")) == ["seed: 0 -> 3", f"tsidm.steps: {steps} -> 9"]
+
+
+def _fake_recipe(calls: list):
+    """Writes what the recipe leaves in its run folder that the grid reads: config.yaml, tsidm.pt, results.json."""
+
+    def run_recipe(overrides, threads=None):
+        calls.append(list(overrides))
+        run_dir = Path(next(o.split("=", 1)[1] for o in overrides if o.startswith("run_dir=")))
+        run_dir.mkdir(parents=True, exist_ok=True)
+        cfg = recipe_config(with_pinned_precision(overrides))
+        (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        (run_dir / "tsidm.pt").write_bytes(b"a TS-IDM")
+        (run_dir / "results.json").write_text(json.dumps({"final_normalized_score_mean": 1.0, "budget": {}}))
+        return ["recipe", *overrides]
+
+    return run_recipe
+
+
+def _grid(tmp_path: Path, work: str, *extra: str):
+    return run_grid.parse_args(["--method", "tels", "--task", TASK, "--seed", "1", "--steps", "10",
+                                "--tsidm-steps", "5", "--eval-interval", "5", "--results-dir", str(tmp_path / work),
+                                "--work-dir", str(tmp_path / work), *extra])
+
+
+def _checkpoint_overrides(call: list[str]) -> list[str]:
+    return [o for o in call if o.startswith("tsidm.checkpoint=")]
+
+
+def test_tsidm_from_reuses_a_matching_stage1_and_trains_its_own_otherwise(tmp_path, monkeypatch, capsys):
+    calls: list = []
+    monkeypatch.setattr(run_grid, "run_recipe", _fake_recipe(calls))
+    run_grid.run_one("tels", TASK, 1, _grid(tmp_path, "first"))
+    source = tmp_path / "first" / "tels" / TASK / "seed1"
+    assert _checkpoint_overrides(calls[-1]) == []
+
+    run_grid.run_one("tels", TASK, 1, _grid(tmp_path, "second", "--tsidm-from", str(tmp_path / "first")))
+    assert _checkpoint_overrides(calls[-1]) == [f"tsidm.checkpoint={source / 'tsidm.pt'}"]
+    record = json.loads(run_grid.result_path(tmp_path / "second", "tels", TASK, 1).read_text())
+    assert f"tsidm.checkpoint={source / 'tsidm.pt'}" in record["recipe_overrides"]
+    assert "--tsidm-from" in " ".join(run_grid.one_command(_grid(tmp_path, "x", "--tsidm-from", str(source)),
+                                                           "tels", TASK, 1))
+
+    saved = yaml.safe_load((source / "config.yaml").read_text())
+    saved["tsidm"]["beta"] = 1.0
+    (source / "config.yaml").write_text(yaml.safe_dump(saved))
+    run_grid.run_one("tels", TASK, 1, _grid(tmp_path, "third", "--tsidm-from", str(tmp_path / "first")))
+    assert _checkpoint_overrides(calls[-1]) == []
+    assert "tsidm.beta: 1.0 -> 0.01" in capsys.readouterr().out
+
+    (source / "tsidm.pt").unlink()
+    run_grid.run_one("tels", TASK, 2, _grid(tmp_path, "fourth", "--tsidm-from", str(tmp_path / "first")))
+    assert _checkpoint_overrides(calls[-1]) == []
