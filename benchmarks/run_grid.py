@@ -435,10 +435,10 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
     if (results_dir / ADROIT_ALPHA1).is_dir():
-        lines += ["", f"Adroit's TELS column waits for runs of `domain=adroit` as it stands (Eq. 9's α = 0.01, "
-                  f"Table 11's): the grid's runs with α = 1, the domain's value before, are in `{ADROIT_ALPHA1}/`, "
-                  "and the default's runs on their TS-IDMs in `study/REPORT.md` (\"Where the guide's proposals go "
-                  "on Adroit\")."]
+        lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands (Eq. 9's α = 0.01, "
+                  f"Table 11's), most of them on the TS-IDMs of the grid's runs with α = 1, the domain's value "
+                  f"before (`--tsidm-from`), which are in `{ADROIT_ALPHA1}/`; the two side by side: `study/REPORT.md` "
+                  "(\"Where the guide's proposals go on Adroit\")."]
 
     ablation_tasks = [t for t in tasks if any(m in found[t] for m in ABLATIONS)]
     if ablation_tasks:

@@ -79,11 +79,34 @@ def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS)
 
 
 def arm_runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS) -> list[dict]:
-    """:func:`runs` of the arm a column names: the default's Adroit runs at the study budget are the study's
-    ``adroit_alpha0.01`` arm (``ADROIT_ALPHA``), every other cell the grid's."""
+    """:func:`runs` of the arm a column names: the grid's, where the default's Adroit runs at the study budget are
+    the grid's ``domain=adroit`` runs and, for a seed the grid has not rerun yet, the study's ``adroit_alpha0.01``
+    arm (``ADROIT_ALPHA``: the same configuration and TS-IDM, through ``study.run_choice``)."""
+    found = runs(method, task, results, steps)
     if method == "tels" and task in ADROIT_TASKS and results == GRID and steps == STUDY_STEPS:
-        return runs(ADROIT_ALPHA, task, STUDY_RESULTS, steps)
-    return runs(method, task, results, steps)
+        seeds = {r["seed"] for r in found}
+        found = sorted(found + [r for r in runs(ADROIT_ALPHA, task, STUDY_RESULTS, steps) if r["seed"] not in seeds],
+                       key=lambda r: r["seed"])
+    return found
+
+
+def tsidm_source(record: dict) -> str | None:
+    """Where a run's TS-IDM came from: ``run_dir/tsidm.pt`` of the run it reused (``tsidm.checkpoint``), or
+    ``None`` where the run trained its own."""
+    overrides = record.get("recipe_overrides") or record.get("overrides") or []
+    found = [o.split("=", 1)[1] for o in overrides if isinstance(o, str) and o.startswith("tsidm.checkpoint=")]
+    return found[-1] if found else None
+
+
+def same_tsidm(reused: dict, trained: dict) -> bool:
+    """Whether ``reused`` acted on ``trained``'s TS-IDM: through ``tsidm.checkpoint`` (compared by the run
+    folder's last three parts, ``<method>/<task>/seed<k>``, which survive a moved work dir), or by training
+    it again to the same final stage-1 loss (the recipe is deterministic on one CPU thread)."""
+    source = tsidm_source(reused)
+    if source is not None:
+        return Path(source).parent.parts[-3:] == Path(trained["run_dir"]).parts[-3:]
+    losses = [[b.get("final_loss") for b in r.get("beta_results", [])] for r in (reused, trained)]
+    return bool(losses[0]) and losses[0] == losses[1]
 
 
 def policy_steps(record: dict) -> int:
@@ -299,16 +322,18 @@ def _guide_cells(record: dict | None) -> str:
 def _adroit_guide_rows() -> list[str]:
     """Where the deterministic guide's proposals go on Adroit, under the default's α and Table 11's, and what
     capping them does to a trained run (``study.proposal_cap``); nothing before a run records its guide."""
-    arms = {task: (runs("tels", task, ADROIT_ALPHA1), runs(ADROIT_ALPHA, task, STUDY_RESULTS), runs("bc", task))
+    arms = {task: (runs("tels", task, ADROIT_ALPHA1), arm_runs("tels", task), runs("bc", task))
             for task in ADROIT_TASKS}
     rows, paired = [], {}
     for task, (alpha1, alpha_paper, bc) in arms.items():
         default = {r["seed"]: r for r in alpha1}
         paper_alpha = {r["seed"]: r for r in alpha_paper}
         for seed in sorted(set(default) | set(paper_alpha)):
-            rows.append(f"| {task} | {seed} | {_guide_cells(default.get(seed))} | "
-                        f"{_guide_cells(paper_alpha.get(seed))} | {cell(bc)} |")
-            if seed in default and seed in paper_alpha:
+            both = seed in default and seed in paper_alpha
+            shared = both and same_tsidm(paper_alpha[seed], default[seed])
+            rows.append(f"| {task} | {seed} | {_guide_cells(default.get(seed))} | {_guide_cells(paper_alpha.get(seed))} "
+                        f"| {('yes' if shared else 'no') if both else '—'} | {cell(bc)} |")
+            if shared:
                 paired.setdefault(task, []).append(scores([paper_alpha[seed]])[0] - scores([default[seed]])[0])
     if not rows:
         return []
@@ -322,10 +347,15 @@ def _adroit_guide_rows() -> list[str]:
                 f"{max(maze_ratio):.2f}" if maze_ratio else "")
              + ". `domain=adroit` weighted Eq. (9)'s value term with α = 1, the `mujoco` domain's departure, until "
              "these runs (`benchmarks/results/adroit_alpha1`); Table 11 gives 0.01 for \"other tasks\", which "
-             "`domain=adroit` keeps since, so the α = 0.01 runs are the default's cells above. Same TS-IDM per seed (`python -m study.run_choice --name adroit_alpha0.01 --override "
-             "guide.alpha=0.01 tsidm.checkpoint=<the grid run>/tsidm.pt`, budget as the grid's Adroit TELS):", "",
+             "`domain=adroit` keeps since, so the α = 0.01 runs are the default's cells above: the grid's "
+             "(`python -m benchmarks.run_grid --grid --method tels --tsidm-from <the α = 1 grid's work dir>`, "
+             "which starts stage 2 from the α = 1 run's TS-IDM of the same seed, or trains one where that is "
+             "gone), or before it reran a seed, the same through `python -m study.run_choice --name "
+             "adroit_alpha0.01 --override guide.alpha=0.01 tsidm.checkpoint=<the α = 1 run>/tsidm.pt`. "
+             "\"Same TS-IDM\": the α = 0.01 run acted on the α = 1 run's TS-IDM, reused or trained again to the "
+             "same final loss; only those seeds enter the paired differences:", "",
              "| set | seed | α = 1 (the default before): score | proposed / data step | cosine | α = 0.01 (the default): score | "
-             "proposed / data step | cosine | BC |", "|---|---|---|---|---|---|---|---|---|", *rows, ""]
+             "proposed / data step | cosine | same TS-IDM | BC |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
     lines += ["Per set, over every seed each arm has:", "", "| set | α = 1 (the default before) | α = 0.01 (the default) | BC |",
               "|---|---|---|---|", *(f"| {task} | " + " | ".join(cell(records, True) for records in task_arms) + " |"
                                     for task, task_arms in arms.items()), ""]

@@ -79,3 +79,18 @@ def test_tsidm_from_reuses_a_matching_stage1_and_trains_its_own_otherwise(tmp_pa
     (source / "tsidm.pt").unlink()
     run_grid.run_one("tels", TASK, 2, _grid(tmp_path, "fourth", "--tsidm-from", str(tmp_path / "first")))
     assert _checkpoint_overrides(calls[-1]) == []
+
+
+def test_the_report_pairs_two_runs_only_on_one_tsidm():
+    from study.domains import same_tsidm
+
+    alpha1 = {"run_dir": "../main/runs/exp/tels/pen-expert-v1-10k/seed0", "beta_results": [{"final_loss": 2.03}]}
+    reused = {"recipe_overrides": ["seed=0", "tsidm.checkpoint=/work/main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"],
+              "beta_results": []}
+    assert same_tsidm(reused, alpha1)
+    assert not same_tsidm(reused, {**alpha1, "run_dir": "runs/exp/tels/pen-expert-v1-10k/seed1"})
+    study_arm = {"overrides": ["guide.alpha=0.01", "tsidm.checkpoint=../main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"]}
+    assert same_tsidm(study_arm, alpha1)
+    assert same_tsidm({"recipe_overrides": ["seed=0"], "beta_results": [{"final_loss": 2.03}]}, alpha1)
+    assert not same_tsidm({"recipe_overrides": ["seed=0"], "beta_results": [{"final_loss": 2.04}]}, alpha1)
+    assert not same_tsidm({"recipe_overrides": [], "beta_results": []}, {**alpha1, "beta_results": []})
