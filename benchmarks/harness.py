@@ -93,6 +93,14 @@ def invocation() -> str:
 
 
 # ---------------------------------------------------------------- running
+def recipe_config(overrides: Sequence[str]):
+    """The recipe's configuration as ``recipes/tels_offline.py`` composes it, with hydra ``overrides``."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "recipes" / "config"), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
 def with_pinned_precision(overrides: Sequence[str]) -> list[str]:
     """``overrides`` with ``precision=fp32`` unless they name a precision: the recorded results ran in fp32, and
     the recipe's default (``precision=auto``) would take bf16 on some CPUs."""

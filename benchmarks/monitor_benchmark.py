@@ -58,7 +58,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from benchmarks.harness import command_line, invocation, machine_description, REPO, repo_relative, run_recipe, \
     portable, skip_existing, write_generated, write_result
-from benchmarks.step_floor import recipe_config
+from benchmarks.harness import recipe_config
 from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes, split_trajectories, trajectory_ids
 from torchrl_tels.envs import DeploymentMonitor
 from torchrl_tels.envs.monitor import DEFAULT_COMBINATION, running_mean, SCORE_TERMS, steps_into_trajectory

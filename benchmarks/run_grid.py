@@ -48,8 +48,8 @@ import yaml
 
 from benchmarks.baselines import (ADROIT_HYPERPARAMETERS, check_reward_scale, HYPERPARAMETERS, MAZE_HYPERPARAMETERS,
                                   METHODS as BASELINES, train_baseline)
-from benchmarks.harness import (invocation, machine_description, REPO, repo_relative, run_recipe, save_figure,
-                                skip_existing, with_pinned_precision, write_result)
+from benchmarks.harness import (invocation, machine_description, recipe_config, REPO, repo_relative, run_recipe,
+                                save_figure, skip_existing, with_pinned_precision, write_result)
 from torchrl_tels.record import second_half_mean
 from torchrl_tels.training import write_text
 
@@ -193,34 +193,68 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     ]
     if method in ABLATIONS:
         overrides += [f"tsidm.ablation={ABLATIONS[method]}", f"logger.exp_name={method}_{task}_seed{seed}"]
-    if args.tsidm_from is not None and not (run_dir / "state.pt").exists():
-        earlier = earlier_stage1(tels_run_dir(args.tsidm_from, task, seed, method), overrides)
-        if earlier is not None:
-            overrides.append(f"tsidm.checkpoint={earlier}")
+    reused = None
+    started_from = _recorded_checkpoint(run_dir)
+    if started_from is not None:  # an interrupted or finished run resumes with the TS-IDM it started from
+        overrides.append(f"tsidm.checkpoint={started_from}")
+    elif args.tsidm_from is not None:
+        reused = reusable_tsidm(tels_run_dir(args.tsidm_from, task, seed, method), task, overrides)
+        if reused is not None:
+            overrides.append(f"tsidm.checkpoint={reused['from']}")
     run_recipe(overrides, args.threads)
     results = json.loads((run_dir / "results.json").read_text())
-    return {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
+    record = {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
+    if reused is not None or started_from is not None:
+        record["tsidm_reused"] = reused or {"from": started_from,
+                                            "beta_results": _tsidm_metadata(Path(started_from)).get("beta_results", [])}
+    return record
 
 
-def earlier_stage1(source: Path, overrides: list[str]) -> Path | None:
-    """``source``'s TS-IDM where that run trained it with the stage-1 settings ``overrides`` give, else ``None``
-    (and why): stage 2 then starts from it as if this run had trained it (``--tsidm-from``)."""
-    from benchmarks.step_floor import recipe_config
+def _recorded_checkpoint(run_dir: Path) -> str | None:
+    """The ``tsidm.checkpoint`` a run folder's config records, where a run started there (``None`` otherwise)."""
+    try:
+        saved = yaml.safe_load((run_dir / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    return ((saved or {}).get("tsidm") or {}).get("checkpoint") if (run_dir / "state.pt").exists() else None
+
+
+def _tsidm_metadata(tsidm_path: Path) -> dict:
+    """What a TS-IDM file records of its stage 1 (β, dataset, each candidate β's final losses), ``{}`` if unreadable."""
+    from torchrl_tels.checkpoint import CheckpointError, load_checkpoint
+    from torchrl_tels.modules import TSIDM
+
+    try:
+        return dict(load_checkpoint(tsidm_path, TSIDM.CHECKPOINT_FORMAT).get("metadata", {}))
+    except CheckpointError:
+        return {}
+
+
+def reusable_tsidm(source: Path, task: str, overrides: list[str]) -> dict | None:
+    """``source``'s TS-IDM, as ``{"from": path, "beta_results": its stage-1 losses}``, where that run trained it
+    itself with the stage-1 settings ``overrides`` give; else ``None``, and why (``--tsidm-from``). Stage 2 then
+    starts from it as if this run had trained it."""
     from torchrl_tels.config import stage1_differences, training_config
+
+    def refuse(why: str) -> None:
+        print(f"--tsidm-from: {why}; this run trains its own TS-IDM", flush=True)
 
     try:
         saved = yaml.safe_load((source / "config.yaml").read_text())
     except (OSError, yaml.YAMLError):
         saved = None
     if not isinstance(saved, dict) or not (source / "tsidm.pt").exists():
-        print(f"--tsidm-from: no finished stage 1 in {source}; this run trains its own", flush=True)
-        return None
+        return refuse(f"no finished stage 1 in {source}")
+    if (saved.get("tsidm") or {}).get("checkpoint"):
+        return refuse(f"{source} did not train its TS-IDM: it started from {saved['tsidm']['checkpoint']}")
     differences = stage1_differences(saved, training_config(recipe_config(with_pinned_precision(overrides))))
     if differences:
-        print(f"--tsidm-from: {source}'s stage 1 had other settings ({'; '.join(differences)}); "
-              "this run trains its own", flush=True)
-        return None
-    return source / "tsidm.pt"
+        return refuse(f"{source}'s stage 1 had other settings ({'; '.join(differences)})")
+    metadata = _tsidm_metadata(source / "tsidm.pt")
+    if not metadata.get("beta_results") or metadata.get("dataset") != task or (
+            metadata.get("beta") != saved["tsidm"].get("beta") and saved["tsidm"].get("beta") != "auto"):
+        return refuse(f"{source / 'tsidm.pt'} is not the TS-IDM the stage 1 of {source / 'config.yaml'} wrote")
+    return {"from": str(source / "tsidm.pt"), "beta_results": metadata["beta_results"]}
 
 
 def _tsidm_matches(run_dir: Path, task: str, seed: int, tsidm_steps: int | None) -> bool:
@@ -434,11 +468,15 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
+    adroit_tels = [r for t in tasks if is_adroit(t) for r in found[t].get("tels", [])]
     if (results_dir / ADROIT_ALPHA1).is_dir():
-        lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands (Eq. 9's α = 0.01, "
-                  f"Table 11's), most of them on the TS-IDMs of the grid's runs with α = 1, the domain's value "
-                  f"before (`--tsidm-from`), which are in `{ADROIT_ALPHA1}/`; the two side by side: `study/REPORT.md` "
-                  "(\"Where the guide's proposals go on Adroit\")."]
+        reused = sum("tsidm_reused" in r or any(str(o).startswith("tsidm.checkpoint=") for o in r.get("recipe_overrides", []))
+                     for r in adroit_tels)
+        lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands (Eq. 9's α = 0.01, Table 11's): "
+                  f"{reused} of its {len(adroit_tels)} runs started stage 2 from the TS-IDM of the same seed's run with "
+                  f"α = 1, the domain's value before (`--tsidm-from`), the others trained their own; the α = 1 runs "
+                  f"are in `{ADROIT_ALPHA1}/`, and the two side by side in `study/REPORT.md` (\"Where the guide's "
+                  "proposals go on Adroit\")."]
 
     ablation_tasks = [t for t in tasks if any(m in found[t] for m in ABLATIONS)]
     if ablation_tasks:
@@ -1082,6 +1120,8 @@ def parse_args(argv=None):
         if not args.tsidm_from.is_dir():
             parser.error(f"--tsidm-from folder not found: {args.tsidm_from}")
         args.tsidm_from = args.tsidm_from.resolve()
+        if args.tsidm_from == args.work_dir:
+            parser.error("--tsidm-from names --work-dir itself: give the earlier grid's work dir, and this grid a new one")
     args.longer = [folder.resolve() for folder in args.longer]
     if args.table and not args.longer and args.results_dir == DEFAULT_RESULTS.resolve():
         args.longer = [folder for folder in DEFAULT_LONGER if folder.is_dir()]

@@ -30,21 +30,13 @@ import time
 import torch
 from torch.profiler import profile, ProfilerActivity
 
-from benchmarks.harness import REPO
+from benchmarks.harness import recipe_config
 from torchrl_tels.config import native_bf16_supported
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
 from torchrl_tels.trainer import make_stage2, make_tsidm, make_tsidm_loss
 from torchrl_tels.training import sum_losses
 
 MATMULS = ("aten::mm", "aten::addmm", "aten::bmm")
-
-
-def recipe_config(overrides: list[str]):
-    """The recipe's configuration as ``recipes/tels_offline.py`` composes it, with hydra ``overrides``."""
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(REPO / "recipes" / "config"), version_base="1.3"):
-        return compose(config_name="config", overrides=overrides)
 
 
 def make_stages(cfg, data):

@@ -51,12 +51,11 @@ MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k policy steps", (
                     (MAZE_STAGE1, "α = 10, 5k policy steps", (MAZE_STAGE1, STUDY_RESULTS, STUDY_STEPS), 20000),
                     (MAZE_STAGE1_ALPHA0, "α = 0, 5k policy steps", (MAZE_STAGE1_ALPHA0, STUDY_RESULTS, STUDY_STEPS),
                      20000))
-#: the default's ``domain=adroit`` with Table 11's α for "other tasks", 0.01, where the default keeps the 1 chosen on
-#: MuJoCo (``study.run_choice --name adroit_alpha0.01 --override guide.alpha=0.01 tsidm.checkpoint=<the grid
-#: run's tsidm.pt>``): paired by seed with the grid's TELS on the same TS-IDM
+#: ``domain=adroit`` (Table 11's α = 0.01 for "other tasks") run through ``study.run_choice --name adroit_alpha0.01
+#: --override guide.alpha=0.01 tsidm.checkpoint=<the α = 1 grid run>/tsidm.pt`` before the grid reran it: the
+#: default's Adroit runs for the seeds the grid has not rerun (:func:`arm_runs`)
 ADROIT_ALPHA = "adroit_alpha0.01"
-#: the grid's Adroit TELS runs with α = 1, ``domain=adroit``'s value before it kept Table 11's; the ADROIT_ALPHA arm,
-#: on their TS-IDMs, holds the default's Adroit runs at the study budget
+#: the grid's Adroit TELS runs with α = 1, ``domain=adroit``'s value before it kept Table 11's
 ADROIT_ALPHA1 = GRID / run_grid.ADROIT_ALPHA1
 #: the guide's proposals re-evaluated with their step capped (``study.proposal_cap``): <arm>-<set>-seed<k>.json
 PROPOSAL_CAP = STUDY_RESULTS / "proposal_cap"
@@ -81,7 +80,7 @@ def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS)
 def arm_runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS) -> list[dict]:
     """:func:`runs` of the arm a column names: the grid's, where the default's Adroit runs at the study budget are
     the grid's ``domain=adroit`` runs and, for a seed the grid has not rerun yet, the study's ``adroit_alpha0.01``
-    arm (``ADROIT_ALPHA``: the same configuration and TS-IDM, through ``study.run_choice``)."""
+    arm (``ADROIT_ALPHA``: the same configuration, through ``study.run_choice``)."""
     found = runs(method, task, results, steps)
     if method == "tels" and task in ADROIT_TASKS and results == GRID and steps == STUDY_STEPS:
         seeds = {r["seed"] for r in found}
@@ -98,15 +97,24 @@ def tsidm_source(record: dict) -> str | None:
     return found[-1] if found else None
 
 
-def same_tsidm(reused: dict, trained: dict) -> bool:
-    """Whether ``reused`` acted on ``trained``'s TS-IDM: through ``tsidm.checkpoint`` (compared by the run
-    folder's last three parts, ``<method>/<task>/seed<k>``, which survive a moved work dir), or by training
-    it again to the same final stage-1 loss (the recipe is deterministic on one CPU thread)."""
-    source = tsidm_source(reused)
-    if source is not None:
-        return Path(source).parent.parts[-3:] == Path(trained["run_dir"]).parts[-3:]
-    losses = [[b.get("final_loss") for b in r.get("beta_results", [])] for r in (reused, trained)]
-    return bool(losses[0]) and losses[0] == losses[1]
+def _stage1_losses(record: dict) -> list:
+    """The final stage-1 losses of the TS-IDM a run acted with: its own, or those the grid read from the TS-IDM it
+    reused (``tsidm_reused``)."""
+    stage1 = (record.get("tsidm_reused") or {}).get("beta_results") or record.get("beta_results") or []
+    return [b.get("final_loss") for b in stage1]
+
+
+def same_tsidm(other: dict, trained: dict) -> bool:
+    """Whether run ``other`` acted on the TS-IDM run ``trained`` trained: the two TS-IDMs' final stage-1 losses
+    agree (a retrained one matches exactly: the recipe is deterministic on one CPU thread), or, for a run that
+    recorded no losses of the TS-IDM it reused (``study.run_choice``), its ``tsidm.checkpoint`` is in
+    ``trained``'s run folder (compared by the folder's last four parts, ``<work dir>/<method>/<task>/seed<k>``,
+    which survive a moved or relative path)."""
+    losses, reference = _stage1_losses(other), _stage1_losses(trained)
+    if losses and reference:
+        return losses == reference
+    source = tsidm_source(other)
+    return source is not None and Path(source).parent.parts[-4:] == Path(trained["run_dir"]).parts[-4:]
 
 
 def policy_steps(record: dict) -> int:

@@ -19,7 +19,7 @@ from torchrl_tels.seeds import SeedRNG
 from torchrl_tels.trainer import (compile_options, make_compiled_step, make_stage2, make_tsidm, make_tsidm_loss,
                                   StackedStage2)
 
-from benchmarks.step_floor import recipe_config
+from benchmarks.harness import recipe_config
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 # fp32 whatever the CPU (precision=auto would take bf16 on some), so that only the compiled kernels' rounding differs.

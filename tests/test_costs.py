@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from benchmarks.step_floor import recipe_config
+from benchmarks.harness import recipe_config
 from torchrl_tels.config import validate_config
 from torchrl_tels.envs.monitor import DeploymentMonitor
 from torchrl_tels.errors import ConfigError
@@ -94,7 +94,7 @@ def test_a_failed_background_fit_is_one_monitor_error(tmp_path):
 CHILD_OF_A_KILLED_RUN = '''
 import sys, time
 from pathlib import Path
-from benchmarks.step_floor import recipe_config
+from benchmarks.harness import recipe_config
 from tests.test_monitor import linear_plant
 from torchrl_tels.trainer import MonitorFit
 fit = MonitorFit(recipe_config(["budget=smoke", "monitor.steps=1000000"]), linear_plant(6), Path(sys.argv[1]), background=True)

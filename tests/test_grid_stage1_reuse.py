@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import yaml
 from omegaconf import OmegaConf
 
 from benchmarks import run_grid
-from benchmarks.harness import with_pinned_precision
-from benchmarks.step_floor import recipe_config
+from benchmarks.harness import recipe_config, with_pinned_precision
 from torchrl_tels.config import stage1_differences, training_config
+from torchrl_tels.modules import TSIDM
 
 TASK = "hopper-medium-v2-10k"
 
@@ -22,15 +23,27 @@ def _config(*overrides: str) -> dict:
 
 def test_stage1_differences_name_stage1_settings_only():
     base = _config()
-    assert stage1_differences(base, _config("guide.alpha=0.01", "policy.steps=7", "eval.episodes=3")) == []
+    assert stage1_differences(base, _config("guide.alpha=0.01", "policy.steps=7", "eval.episodes=3",
+                                            "dataset.reward_scale=2.0", "dataset.reward_bias=-1.0")) == []
     assert stage1_differences(base, _config("tsidm.checkpoint=/somewhere/tsidm.pt")) == []
     assert stage1_differences(base, _config("tsidm.beta=1.0")) == ["tsidm.beta: 0.01 -> 1.0"]
     steps = base["tsidm"]["steps"]
     assert stage1_differences(base, _config("seed=3", "tsidm.steps=9")) == ["seed: 0 -> 3", f"tsidm.steps: {steps} -> 9"]
 
 
+STAGE1_LOSS = [{"beta": 0.01, "final_loss": 1.25, "final_sum": 2.5}]
+
+
+def _tsidm_file(path: Path, dataset: str = TASK, beta: float = 0.01) -> None:
+    """A small TS-IDM file with the metadata a finished stage 1 writes."""
+    TSIDM(observation_dim=3, action_dim=2, encoder_cells=[8], decoder_cells=[8], inverse_cells=[8],
+          action_decoder_cells=[8], dynamics_cells=[8]).save(
+        path, metadata={"beta": beta, "dataset": dataset, "beta_results": STAGE1_LOSS})
+
+
 def _fake_recipe(calls: list):
-    """Writes what the recipe leaves in its run folder that the grid reads: config.yaml, tsidm.pt, results.json."""
+    """Writes what the recipe leaves in its run folder that the grid reads: config.yaml, state.pt, tsidm.pt,
+    results.json."""
 
     def run_recipe(overrides, threads=None):
         calls.append(list(overrides))
@@ -38,7 +51,8 @@ def _fake_recipe(calls: list):
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg = recipe_config(with_pinned_precision(overrides))
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-        (run_dir / "tsidm.pt").write_bytes(b"a TS-IDM")
+        (run_dir / "state.pt").write_bytes(b"a run's state")
+        _tsidm_file(run_dir / "tsidm.pt", beta=float(cfg.tsidm.beta))
         (run_dir / "results.json").write_text(json.dumps({"final_normalized_score_mean": 1.0, "budget": {}}))
         return ["recipe", *overrides]
 
@@ -66,8 +80,14 @@ def test_tsidm_from_reuses_a_matching_stage1_and_trains_its_own_otherwise(tmp_pa
     assert _checkpoint_overrides(calls[-1]) == [f"tsidm.checkpoint={source / 'tsidm.pt'}"]
     record = json.loads(run_grid.result_path(tmp_path / "second", "tels", TASK, 1).read_text())
     assert f"tsidm.checkpoint={source / 'tsidm.pt'}" in record["recipe_overrides"]
+    assert record["tsidm_reused"] == {"from": str(source / "tsidm.pt"), "beta_results": STAGE1_LOSS}
     assert "--tsidm-from" in " ".join(run_grid.one_command(_grid(tmp_path, "x", "--tsidm-from", str(source)),
                                                            "tels", TASK, 1))
+
+    # resumed (or recorded again) without the flag, the run keeps the TS-IDM it started from
+    run_grid.result_path(tmp_path / "second", "tels", TASK, 1).unlink()
+    run_grid.run_one("tels", TASK, 1, _grid(tmp_path, "second"))
+    assert _checkpoint_overrides(calls[-1]) == [f"tsidm.checkpoint={source / 'tsidm.pt'}"]
 
     saved = yaml.safe_load((source / "config.yaml").read_text())
     saved["tsidm"]["beta"] = 1.0
@@ -76,21 +96,32 @@ def test_tsidm_from_reuses_a_matching_stage1_and_trains_its_own_otherwise(tmp_pa
     assert _checkpoint_overrides(calls[-1]) == []
     assert "tsidm.beta: 1.0 -> 0.01" in capsys.readouterr().out
 
-    (source / "tsidm.pt").unlink()
-    run_grid.run_one("tels", TASK, 2, _grid(tmp_path, "fourth", "--tsidm-from", str(tmp_path / "first")))
+    saved["tsidm"]["beta"] = 0.01
+    (source / "config.yaml").write_text(yaml.safe_dump(saved))
+    _tsidm_file(source / "tsidm.pt", dataset="walker2d-medium-v2-10k")  # config.yaml no longer describes it
+    run_grid.run_one("tels", TASK, 1, _grid(tmp_path, "fourth", "--tsidm-from", str(tmp_path / "first")))
     assert _checkpoint_overrides(calls[-1]) == []
+    assert "is not the TS-IDM the stage 1" in capsys.readouterr().out
+
+    (source / "tsidm.pt").unlink()
+    run_grid.run_one("tels", TASK, 1, _grid(tmp_path, "fifth", "--tsidm-from", str(tmp_path / "first")))
+    assert _checkpoint_overrides(calls[-1]) == []
+    assert "no finished stage 1" in capsys.readouterr().out
+
+    with pytest.raises(SystemExit):
+        _grid(tmp_path, "first", "--tsidm-from", str(tmp_path / "first"))
 
 
 def test_the_report_pairs_two_runs_only_on_one_tsidm():
     from study.domains import same_tsidm
 
     alpha1 = {"run_dir": "../main/runs/exp/tels/pen-expert-v1-10k/seed0", "beta_results": [{"final_loss": 2.03}]}
-    reused = {"recipe_overrides": ["seed=0", "tsidm.checkpoint=/work/main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"],
-              "beta_results": []}
-    assert same_tsidm(reused, alpha1)
-    assert not same_tsidm(reused, {**alpha1, "run_dir": "runs/exp/tels/pen-expert-v1-10k/seed1"})
-    study_arm = {"overrides": ["guide.alpha=0.01", "tsidm.checkpoint=../main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"]}
-    assert same_tsidm(study_arm, alpha1)
+    assert same_tsidm({"tsidm_reused": {"beta_results": [{"final_loss": 2.03}]}, "beta_results": []}, alpha1)
+    assert not same_tsidm({"tsidm_reused": {"beta_results": [{"final_loss": 2.5}]}, "beta_results": []}, alpha1)
     assert same_tsidm({"recipe_overrides": ["seed=0"], "beta_results": [{"final_loss": 2.03}]}, alpha1)
     assert not same_tsidm({"recipe_overrides": ["seed=0"], "beta_results": [{"final_loss": 2.04}]}, alpha1)
+    # a run that recorded no losses: its checkpoint's run folder decides
+    study_arm = {"overrides": ["guide.alpha=0.01", "tsidm.checkpoint=/work/main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"]}
+    assert same_tsidm(study_arm, alpha1)
+    assert not same_tsidm(study_arm, {**alpha1, "beta_results": [], "run_dir": "runs/grid/tels/pen-expert-v1-10k/seed0"})
     assert not same_tsidm({"recipe_overrides": [], "beta_results": []}, {**alpha1, "beta_results": []})

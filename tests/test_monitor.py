@@ -428,7 +428,7 @@ def test_trajectory_split_keeps_whole_trajectories():
     ("monitor.num_cells=[0]", "monitor.num_cells must be a list of positive integers"),
 ])
 def test_bad_monitor_config_is_one_config_error(override, message):
-    from benchmarks.step_floor import recipe_config
+    from benchmarks.harness import recipe_config
     from torchrl_tels.config import validate_config
     from torchrl_tels.errors import ConfigError
 
@@ -438,7 +438,7 @@ def test_bad_monitor_config_is_one_config_error(override, message):
 
 
 def test_recipe_monitor_is_fitted_once_and_read_back_on_resume(tmp_path, monkeypatch):
-    from benchmarks.step_floor import recipe_config
+    from benchmarks.harness import recipe_config
     from torchrl_tels.trainer import check_monitor_data, make_monitor
 
     cfg = recipe_config(["budget=smoke", "monitor.window=4"])

@@ -65,7 +65,7 @@ def test_claim_is_exclusive_and_released(tmp_path):
 
 
 def test_resume_and_overwrite_must_be_booleans():
-    from benchmarks.step_floor import recipe_config
+    from benchmarks.harness import recipe_config
     from torchrl_tels.config import validate_config
 
     with pytest.raises(ConfigError, match="overwrite must be true or false, got 'flase'"):

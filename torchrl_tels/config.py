@@ -15,6 +15,7 @@ from torchrl_tels.errors import ConfigError
 __all__ = [
     "ConfigError",
     "RESUMABLE_KEYS",
+    "STAGE1_KEYS",
     "check_precision_supported",
     "resolve_precision",
     "check_folder_creatable",
@@ -352,17 +353,23 @@ def _differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
 
 
 #: What decides stage 1, the TS-IDM: a run may start stage 2 from another run's TS-IDM
-#: (``tsidm.checkpoint``) as if it had trained it itself only when these agree.
+#: (``tsidm.checkpoint``) as if it had trained it itself only when these agree. Like
+#: :data:`RESUMABLE_KEYS`, ``device``, ``threads`` and ``compile`` are left out: they change a step's
+#: rounding, not what it computes.
 STAGE1_KEYS = ("seed", "precision", "dataset", "tsidm")
+#: Entries of :data:`STAGE1_KEYS` that stage 1 never reads: where the TS-IDM came from, a warning's
+#: threshold, and the rewards (the TS-IDM models states and actions; the rewards enter at stage 2).
+STAGE1_UNREAD = {"tsidm": ("checkpoint", "warn_steps"), "dataset": ("reward_scale", "reward_bias")}
 
 
 def stage1_differences(saved: Mapping, current: Mapping) -> list[str]:
     """What differs between two :func:`training_config` records in the settings of stage 1
-    (:data:`STAGE1_KEYS`; where the TS-IDM came from and a warning's threshold aside), as ``"key: saved -> current"``."""
+    (:data:`STAGE1_KEYS` less :data:`STAGE1_UNREAD`), as ``"key: saved -> current"``."""
 
     def stage1(config: Mapping) -> dict:
         picked = {key: config.get(key) for key in STAGE1_KEYS}
-        picked["tsidm"] = {k: v for k, v in (picked["tsidm"] or {}).items() if k not in ("checkpoint", "warn_steps")}
+        for section, unread in STAGE1_UNREAD.items():
+            picked[section] = {k: v for k, v in (picked[section] or {}).items() if k not in unread}
         return picked
 
     return _differences(stage1(_with_added_options(saved, current)), stage1(current))
