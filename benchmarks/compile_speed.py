@@ -26,8 +26,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.harness import machine_description
-from benchmarks.harness import recipe_config
+from benchmarks.harness import machine_description, recipe_config
 from torchrl_tels.compile import capturable_adam
 from torchrl_tels.data import load_dataset, make_offline_replay_buffer
 from torchrl_tels.seeds import SeedRNG, StackedLoss

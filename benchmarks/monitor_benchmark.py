@@ -57,8 +57,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from benchmarks.harness import command_line, invocation, machine_description, REPO, repo_relative, run_recipe, \
-    portable, skip_existing, write_generated, write_result
-from benchmarks.harness import recipe_config
+    portable, recipe_config, skip_existing, write_generated, write_result
 from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes, split_trajectories, trajectory_ids
 from torchrl_tels.envs import DeploymentMonitor
 from torchrl_tels.envs.monitor import DEFAULT_COMBINATION, running_mean, SCORE_TERMS, steps_into_trajectory

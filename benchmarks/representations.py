@@ -41,8 +41,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from benchmarks.harness import invocation, machine_description, REPO, save_figure, skip_existing, write_result
-from benchmarks.harness import recipe_config
+from benchmarks.harness import (invocation, machine_description, recipe_config, REPO, save_figure, skip_existing,
+                                write_result)
 
 ENCODERS = ("tsidm", "ae", "vae", "contrastive")
 TASKS = ("hopper-medium-v2-10k", "hopper-medium-replay-v2-10k", "walker2d-medium-v2-10k", "halfcheetah-medium-v2-10k")

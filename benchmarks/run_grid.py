@@ -210,13 +210,19 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     return record
 
 
-def _recorded_checkpoint(run_dir: Path) -> str | None:
-    """The ``tsidm.checkpoint`` a run folder's config records, where a run started there (``None`` otherwise)."""
+def _saved_config(run_dir: Path) -> dict | None:
+    """The ``config.yaml`` a recipe run wrote in ``run_dir``, ``None`` if there is none or it does not parse."""
     try:
         saved = yaml.safe_load((run_dir / "config.yaml").read_text())
     except (OSError, yaml.YAMLError):
         return None
-    return ((saved or {}).get("tsidm") or {}).get("checkpoint") if (run_dir / "state.pt").exists() else None
+    return saved if isinstance(saved, dict) else None
+
+
+def _recorded_checkpoint(run_dir: Path) -> str | None:
+    """The ``tsidm.checkpoint`` a run folder's config records, where a run started there (``None`` otherwise)."""
+    saved = _saved_config(run_dir) if (run_dir / "state.pt").exists() else None
+    return ((saved or {}).get("tsidm") or {}).get("checkpoint")
 
 
 def _tsidm_metadata(tsidm_path: Path) -> dict:
@@ -239,11 +245,8 @@ def reusable_tsidm(source: Path, task: str, overrides: list[str]) -> dict | None
     def refuse(why: str) -> None:
         print(f"--tsidm-from: {why}; this run trains its own TS-IDM", flush=True)
 
-    try:
-        saved = yaml.safe_load((source / "config.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        saved = None
-    if not isinstance(saved, dict) or not (source / "tsidm.pt").exists():
+    saved = _saved_config(source)
+    if saved is None or not (source / "tsidm.pt").exists():
         return refuse(f"no finished stage 1 in {source}")
     if (saved.get("tsidm") or {}).get("checkpoint"):
         return refuse(f"{source} did not train its TS-IDM: it started from {saved['tsidm']['checkpoint']}")
@@ -259,11 +262,8 @@ def reusable_tsidm(source: Path, task: str, overrides: list[str]) -> dict | None
 
 def _tsidm_matches(run_dir: Path, task: str, seed: int, tsidm_steps: int | None) -> bool:
     """Whether the recipe run in ``run_dir`` trained its TS-IDM for this task and seed with this budget."""
-    try:
-        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return False
-    return (cfg.get("seed") == seed and cfg.get("dataset", {}).get("name") == task
+    cfg = _saved_config(run_dir)
+    return (cfg is not None and cfg.get("seed") == seed and cfg.get("dataset", {}).get("name") == task
             and cfg.get("tsidm", {}).get("steps") == tsidm_steps and not cfg.get("tsidm", {}).get("checkpoint"))
 
 

@@ -121,7 +121,7 @@ def test_the_report_pairs_two_runs_only_on_one_tsidm():
     assert same_tsidm({"recipe_overrides": ["seed=0"], "beta_results": [{"final_loss": 2.03}]}, alpha1)
     assert not same_tsidm({"recipe_overrides": ["seed=0"], "beta_results": [{"final_loss": 2.04}]}, alpha1)
     # a run that recorded no losses: its checkpoint's run folder decides
-    study_arm = {"overrides": ["guide.alpha=0.01", "tsidm.checkpoint=/work/main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"]}
+    study_arm = {"overrides": ["guide.alpha=0.01", "tsidm.checkpoint=../elsewhere/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"]}
     assert same_tsidm(study_arm, alpha1)
     assert not same_tsidm(study_arm, {**alpha1, "beta_results": [], "run_dir": "runs/grid/tels/pen-expert-v1-10k/seed0"})
     assert not same_tsidm({"recipe_overrides": [], "beta_results": []}, {**alpha1, "beta_results": []})
