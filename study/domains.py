@@ -51,10 +51,6 @@ MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k policy steps", (
                     (MAZE_STAGE1, "α = 10, 5k policy steps", (MAZE_STAGE1, STUDY_RESULTS, STUDY_STEPS), 20000),
                     (MAZE_STAGE1_ALPHA0, "α = 0, 5k policy steps", (MAZE_STAGE1_ALPHA0, STUDY_RESULTS, STUDY_STEPS),
                      20000))
-#: ``domain=adroit`` (Table 11's α = 0.01 for "other tasks") run through ``study.run_choice --name adroit_alpha0.01
-#: --override guide.alpha=0.01 tsidm.checkpoint=<the α = 1 grid run>/tsidm.pt`` before the grid reran it: the
-#: default's Adroit runs for the seeds the grid has not rerun (:func:`arm_runs`)
-ADROIT_ALPHA = "adroit_alpha0.01"
 #: the grid's Adroit TELS runs with α = 1, ``domain=adroit``'s value before it kept Table 11's
 ADROIT_ALPHA1 = GRID / run_grid.ADROIT_ALPHA1
 #: the guide's proposals re-evaluated with their step capped (``study.proposal_cap``): <arm>-<set>-seed<k>.json
@@ -75,18 +71,6 @@ def runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS)
         if policy_steps(record) == steps:
             found.append(record)
     return sorted(found, key=lambda r: r["seed"])
-
-
-def arm_runs(method: str, task: str, results: Path = GRID, steps: int = STUDY_STEPS) -> list[dict]:
-    """:func:`runs` of the arm a column names: the grid's, where the default's Adroit runs at the study budget are
-    the grid's ``domain=adroit`` runs and, for a seed the grid has not rerun yet, the study's ``adroit_alpha0.01``
-    arm (``ADROIT_ALPHA``: the same configuration, through ``study.run_choice``)."""
-    found = runs(method, task, results, steps)
-    if method == "tels" and task in ADROIT_TASKS and results == GRID and steps == STUDY_STEPS:
-        seeds = {r["seed"] for r in found}
-        found = sorted(found + [r for r in runs(ADROIT_ALPHA, task, STUDY_RESULTS, steps) if r["seed"] not in seeds],
-                       key=lambda r: r["seed"])
-    return found
 
 
 def tsidm_source(record: dict) -> str | None:
@@ -177,7 +161,7 @@ def verdict_lines() -> list[str]:
         for budget, results, steps in budgets:
             parts, ran = [], 0
             for task in tasks:
-                tels = scores(arm_runs("tels", task, results, steps))
+                tels = scores(runs("tels", task, results, steps))
                 ran_here = {m: s for m in BASELINES if (s := scores(runs(m, task, results, steps)))}
                 if not tels or not ran_here:
                     continue
@@ -330,7 +314,7 @@ def _guide_cells(record: dict | None) -> str:
 def _adroit_guide_rows() -> list[str]:
     """Where the deterministic guide's proposals go on Adroit, under the default's α and Table 11's, and what
     capping them does to a trained run (``study.proposal_cap``); nothing before a run records its guide."""
-    arms = {task: (runs("tels", task, ADROIT_ALPHA1), arm_runs("tels", task), runs("bc", task))
+    arms = {task: (runs("tels", task, ADROIT_ALPHA1), runs("tels", task), runs("bc", task))
             for task in ADROIT_TASKS}
     rows, paired = [], {}
     for task, (alpha1, alpha_paper, bc) in arms.items():
@@ -358,8 +342,7 @@ def _adroit_guide_rows() -> list[str]:
              "`domain=adroit` keeps since, so the α = 0.01 runs are the default's cells above: the grid's "
              "(`python -m benchmarks.run_grid --grid --method tels --tsidm-from <the α = 1 grid's work dir>`, "
              "which starts stage 2 from the α = 1 run's TS-IDM of the same seed, or trains one where that is "
-             "gone), or before it reran a seed, the same through `python -m study.run_choice --name "
-             "adroit_alpha0.01 --override guide.alpha=0.01 tsidm.checkpoint=<the α = 1 run>/tsidm.pt`. "
+             "gone). "
              "\"Same TS-IDM\": the α = 0.01 run acted on the α = 1 run's TS-IDM, reused or trained again to the "
              "same final loss; only those seeds enter the paired differences:", "",
              "| set | seed | α = 1 (the default before): score | proposed / data step | cosine | α = 0.01 (the default): score | "
@@ -393,7 +376,7 @@ def _longer_rows() -> list[str]:
             longer = runs(method, task, results, steps)
             if longer:
                 adroit = task in ADROIT_TASKS
-                rows.append(f"| {task} | {run_grid.LABELS[method]} | {cell(arm_runs(method, task), adroit)} | "
+                rows.append(f"| {task} | {run_grid.LABELS[method]} | {cell(runs(method, task), adroit)} | "
                             f"{cell(longer, adroit)} |")
                 intervals.update(r["budget"]["eval_interval"] for r in longer)
     if not rows:
@@ -413,9 +396,8 @@ def section() -> list[str]:
              "and n; the paper's value after `·`. AntMaze evaluates 50 episodes every 2,500 steps in the D4RL "
              "umaze env (`torchrl_tels.envs.antmaze`); Adroit 10 episodes every 500 steps in gymnasium-robotics' "
              "envs with D4RL's reward and episode length (`torchrl_tels.envs.adroit`), with D4RL's success rate "
-             "after the score. TELS runs `domain=maze` (Table 11's AntMaze values, Eq. 10) and `domain=adroit` (on Adroit, "
-             "the default's column is the `adroit_alpha0.01` arm of \"Where the guide's proposals go on Adroit\" "
-             "below, run on the TS-IDMs of the α = 1 runs that preceded it). "
+             "after the score. TELS runs `domain=maze` (Table 11's AntMaze values, Eq. 10) and `domain=adroit` (Table 11's "
+             "values for other tasks, Eq. 9; see \"Where the guide's proposals go on Adroit\" below). "
              "Every number is in the grid's JSONs ([TABLE.md](../benchmarks/results/TABLE.md)).", "",
              "| set | " + " | ".join(HEADERS) + " | DAPG expert (ceiling) |",
              "|---|" + "---|" * (len(HEADERS) + 1)]
@@ -426,7 +408,7 @@ def section() -> list[str]:
                    if expert else "—")
         lines.append(f"| {task} | " + " | ".join(
             "the default's (`domain=maze` is Table 11's)" if m == "tels_paper" and not adroit
-            else f"{cell(arm_runs(m, task), adroit)} · {_paper(task, m)}" for m in METHODS) + f" | {ceiling} |")
+            else f"{cell(runs(m, task), adroit)} · {_paper(task, m)}" for m in METHODS) + f" | {ceiling} |")
     lines += _longer_rows()
     lines += ["", "**Settling the maze baseline.** IQL on the same data and budget, three ways:", "",
               "| IQL arm | " + " | ".join(MAZE_TASKS) + " |", "|---|" + "---|" * len(MAZE_TASKS)]
