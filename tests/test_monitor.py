@@ -207,6 +207,52 @@ def test_ensemble_in_bf16_learns_the_plant_too():
     assert all(p.dtype == torch.float32 for p in ensemble.parameters())
 
 
+def hand_fit(ensemble: DynamicsEnsemble, observation, action, next_observation, steps: int, seed: int):
+    """One ensemble trained on its own, written out: its normalizations, its batches, Adam on its own loss."""
+    ensemble.obs_loc, ensemble.obs_scale = observation.mean(0), observation.std(0).clamp_min(1e-6)
+    delta = next_observation - observation
+    ensemble.delta_loc, ensemble.delta_scale = delta.mean(0), delta.std(0).clamp_min(1e-6)
+    target = (delta - ensemble.delta_loc) / ensemble.delta_scale
+    generator = torch.Generator().manual_seed(seed)
+    optim = torch.optim.Adam(ensemble.parameters(), lr=1e-3)
+    for _ in range(steps):
+        index = torch.randint(len(observation), (ensemble.members, 256), generator=generator)
+        x = torch.cat([(observation[index] - ensemble.obs_loc) / ensemble.obs_scale, action[index]], -1)
+        for i, (weight, bias) in enumerate(zip(ensemble.weights, ensemble.biases)):
+            x = x @ weight + bias
+            x = torch.relu(x) if i < len(ensemble.weights) - 1 else x
+        loss = (x - target[index]).pow(2).sum(-1).mean()
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+
+
+def test_ensembles_trained_together_each_get_the_updates_they_would_alone():
+    from torchrl_tels.modules import fit_ensembles
+
+    datasets = [linear_plant(6, seed=1), linear_plant(9, seed=2, gain=2.0)]
+    members, seeds = (3, 2), (7, 8)
+
+    def fresh(k):
+        torch.manual_seed(100 + k)
+        return DynamicsEnsemble(OBS_DIM, ACTION_DIM, members=members[k], num_cells=(16, 16))
+
+    transitions = [(d["observation"], d["action"], d["next", "observation"]) for d in datasets]
+    together = [fresh(0), fresh(1)]
+    fit_ensembles(together, transitions, seeds=seeds, steps=30)
+    for k, ensemble in enumerate(together):
+        alone = fresh(k)
+        hand_fit(alone, *transitions[k], steps=30, seed=seeds[k])
+        assert not torch.allclose(alone.weights[0], fresh(k).weights[0])  # it trained
+        for name, value in alone.state_dict().items():
+            torch.testing.assert_close(ensemble.state_dict()[name], value, rtol=1e-5, atol=1e-6, msg=name)
+    with pytest.raises(ValueError, match="one seed per ensemble"):
+        fit_ensembles(together, transitions, seeds=seeds[:1], steps=1)
+    with pytest.raises(ValueError, match="one architecture"):
+        fit_ensembles([fresh(0), DynamicsEnsemble(OBS_DIM, ACTION_DIM, num_cells=(8,))], transitions, seeds=seeds,
+                      steps=1)
+
+
 def test_ensemble_learns_the_plant_and_a_changed_plant_scores_higher():
     from benchmarks.monitor_benchmark import auroc
 

@@ -16,7 +16,7 @@ from torchrl.envs import Transform
 from torchrl_tels.checkpoint import atomic_save, CheckpointError, load_checkpoint
 from torchrl_tels.data.subsets import trajectory_ids
 from torchrl_tels.errors import MonitorError
-from torchrl_tels.modules.detectors import DynamicsEnsemble, NearestStateDistance
+from torchrl_tels.modules.detectors import DynamicsEnsemble, fit_ensembles, NearestStateDistance
 from torchrl_tels.modules.tsidm import squared_norm, TSIDM
 
 __all__ = ["DEFAULT_COMBINATION", "DeploymentMonitor", "SCORE_TERMS", "conformal_threshold", "running_mean",
@@ -412,14 +412,26 @@ class DeploymentMonitor(Transform):
                       precision: str = "fp32") -> tuple[DynamicsEnsemble, NearestStateDistance]:
         """A :class:`DynamicsEnsemble` (trained in ``precision``) and a :class:`NearestStateDistance` fitted to
         ``data``'s transitions."""
-        observation, action, next_observation = DeploymentMonitor._transitions(data, "train", "fit_detectors")
-        with torch.random.fork_rng(devices=[]):  # seeded, and the caller's RNG stream left as it was
-            torch.manual_seed(seed)
-            dynamics = DynamicsEnsemble(observation.shape[-1], action.shape[-1], members=members,
-                                        num_cells=tuple(num_cells))
-        dynamics.fit(observation, action, next_observation, steps=steps, seed=seed, precision=precision)
-        states = NearestStateDistance(torch.cat([observation, next_observation]), max_states=max_states, seed=seed)
-        return dynamics, states
+        return DeploymentMonitor._fit_detector_sets([data], [seed], members=members, num_cells=num_cells,
+                                                    steps=steps, max_states=max_states, precision=precision)[0]
+
+    @staticmethod
+    def _fit_detector_sets(datasets: Sequence[TensorDictBase], seeds: Sequence[int], *, members: int,
+                           num_cells: Sequence[int], steps: int, max_states: int,
+                           precision: str) -> list[tuple[DynamicsEnsemble, NearestStateDistance]]:
+        """:meth:`fit_detectors` on each of ``datasets`` with its seed; the dynamics ensembles train at once
+        (:func:`~torchrl_tels.modules.detectors.fit_ensembles`), each as it would alone."""
+        transitions = [DeploymentMonitor._transitions(data, "train", "fit_detectors") for data in datasets]
+        ensembles = []
+        for (observation, action, _), seed in zip(transitions, seeds):
+            with torch.random.fork_rng(devices=[]):  # seeded, and the caller's RNG stream left as it was
+                torch.manual_seed(seed)
+                ensembles.append(DynamicsEnsemble(observation.shape[-1], action.shape[-1], members=members,
+                                                  num_cells=tuple(num_cells)))
+        fit_ensembles(ensembles, transitions, seeds=seeds, steps=steps, precision=precision)
+        return [(ensemble, NearestStateDistance(torch.cat([observation, next_observation]), max_states=max_states,
+                                                seed=seed))
+                for ensemble, (observation, _, next_observation), seed in zip(ensembles, transitions, seeds)]
 
     @classmethod
     def fit(cls, train: TensorDictBase, calibration: TensorDictBase, *, tsidm: TSIDM | None = None,
@@ -450,7 +462,8 @@ class DeploymentMonitor(Transform):
         groups and score it. The terms' scales and both thresholds come from these out-of-fold scores
         of the whole dataset, and the deployed detectors are then fitted to all of it. A detector fitted
         to more data scores new data no higher, so the thresholds err towards fewer alarms. It costs
-        ``folds + 1`` fits, and with few trajectories calibrates on all of them rather than a fifth.
+        ``folds + 1`` fits, trained as one stacked ensemble (:func:`~torchrl_tels.modules.detectors.fit_ensembles`),
+        and with few trajectories calibrates on all of them rather than a fifth.
         A TS-IDM is not refitted here, so the T-symmetry terms need :meth:`fit`.
         """
         name = f"{cls.__name__}.cross_fit"
@@ -472,14 +485,15 @@ class DeploymentMonitor(Transform):
         fold = fold_of[trajectory]
         options = {"members": members, "num_cells": num_cells, "steps": steps, "max_states": max_states,
                    "precision": precision}
+        held = [fold == k for k in range(int(folds))]
+        # the fold detectors and the deployed ones (fitted to all of the data) train in one pass
+        *fold_detectors, (dynamics, states) = cls._fit_detector_sets(
+            [data[~rows] for rows in held] + [data], [seed + 1 + k for k in range(int(folds))] + [seed], **options)
         raw = {}
-        for k in range(int(folds)):
-            held = fold == k
-            dynamics, states = cls.fit_detectors(data[~held], seed=seed + 1 + k, **options)
-            scores = cls(dynamics=dynamics, states=states, flag=False)._data_scores(data[held])
+        for rows, (fold_dynamics, fold_states) in zip(held, fold_detectors):
+            scores = cls(dynamics=fold_dynamics, states=fold_states, flag=False)._data_scores(data[rows])
             for term, value in scores.items():
-                raw.setdefault(term, torch.empty(len(data)))[held] = value
-        dynamics, states = cls.fit_detectors(data, seed=seed, **options)
+                raw.setdefault(term, torch.empty(len(data)))[rows] = value
         monitor = cls(dynamics=dynamics, states=states, **kwargs)
         monitor._calibrate_scores(raw, trajectory, quantile, window_quantile)
         monitor.metadata = {"calibration": f"cross_fit_{int(folds)}", "train_transitions": len(data),

@@ -10,7 +10,7 @@ from torchrl_tels.modules.actors import (
     save_guide_policy,
     StateEncoder,
 )
-from torchrl_tels.modules.detectors import DynamicsEnsemble, NearestStateDistance
+from torchrl_tels.modules.detectors import DynamicsEnsemble, NearestStateDistance, fit_ensembles
 from torchrl_tels.modules.tsidm import jvp, squared_norm, TSIDM
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "NearestStateDistance",
     "StateEncoder",
     "TSIDM",
+    "fit_ensembles",
     "jvp",
     "load_tels_actor",
     "make_guide_policy",
