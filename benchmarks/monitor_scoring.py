@@ -63,10 +63,12 @@ def main(argv=None) -> int:
                 for chunk in next_observation.split(rows):
                     whole_bank_distance(states, chunk)
                 whole_bank[rows].append(time.perf_counter() - start)
-    print(f"{machine_description()['cpu']}, torch {torch.__version__}; {args.threads} torch thread(s); {len(data):,} transitions, "
+    print(f"{machine_description()['cpu']}, torch {torch.__version__}; {args.threads} torch thread(s); "
+          f"{len(data):,} transitions, "
           f"{states.bank.shape[0]:,} bank states, dynamics ensemble of {dynamics.members}; "
           f"median of {args.repeats} interleaved passes")
-    print("| rows per call | whole scoring pass, s | nearest-state term alone, s | the term over the whole bank at once, s |")
+    print("| rows per call | whole scoring pass, s | nearest-state term alone, s "
+          "| the term over the whole bank at once, s |")
     print("|---|---|---|---|")
     for rows in args.rows:
         print(f"| {rows} | {statistics.median(passes[rows]):.2f} | {statistics.median(nearest[rows]):.2f} "
