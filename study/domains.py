@@ -53,6 +53,9 @@ MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k policy steps", (
                      20000))
 #: the grid's Adroit TELS runs with α = 1, ``domain=adroit``'s value before it kept Table 11's
 ADROIT_ALPHA1 = GRID / run_grid.ADROIT_ALPHA1
+#: ``domain=adroit`` with Eq. 10's guide instead of Eq. 9's, on the grid's TS-IDMs (``study.run_choice --name
+#: adroit_guide_stochastic --override guide.mode=stochastic tsidm.checkpoint=<the grid run's TS-IDM>``)
+ADROIT_STOCHASTIC = "adroit_guide_stochastic"
 #: the guide's proposals re-evaluated with their step capped (``study.proposal_cap``): <arm>-<set>-seed<k>.json
 PROPOSAL_CAP = STUDY_RESULTS / "proposal_cap"
 #: the IQL arms that settle the maze baseline: (results dir, what differs)
@@ -358,6 +361,40 @@ def _maze_arm_rows() -> list[str]:
             "(the bullets above give the actor's error as it acts against BC's).", ""]
 
 
+def _adroit_mode_rows() -> list[str]:
+    """Eq. 9 (``domain=adroit``'s guide) against Eq. 10 on the same TS-IDMs, by seed; nothing before a run."""
+    arms = {task: (runs("tels", task), runs(ADROIT_STOCHASTIC, task, STUDY_RESULTS)) for task in ADROIT_TASKS}
+    arms = {task: pair for task, pair in arms.items() if pair[1]}
+    if not arms:
+        return []
+    rows, summary = [], []
+    for task, (deterministic, stochastic) in arms.items():
+        by_seed = {r["seed"]: r for r in deterministic}
+        paired = []
+        for record in stochastic:
+            default = by_seed.get(record["seed"])
+            shared = default is not None and same_tsidm(record, default)
+            weights = record.get("diagnostics", {}).get("awr_weights") or {}
+            ess = f"{weights['effective_sample_fraction']:.3f}" if weights else "—"
+            default_score = f"{scores([default])[0]:.1f}" if default else "—"
+            rows.append(f"| {task} | {record['seed']} | {default_score} | {scores([record])[0]:.1f} | {ess} | "
+                        f"{'yes' if shared else 'no'} |")
+            if shared:
+                paired.append(scores([record])[0] - scores([default])[0])
+        change = (f"{statistics.mean(paired):+.1f} ({sum(d > 0 for d in paired)} of {len(paired)} seeds up)"
+                  if paired else "no pairs")
+        summary.append(f"| {task} | {cell(deterministic, True)} | {cell(stochastic, True)} | {change} |")
+    return ["**Eq. 9 or Eq. 10 on Adroit.** The paper does not say which guide its Adroit runs used; `domain=adroit` "
+            "takes Eq. 9's deterministic guide, as for dense-reward MuJoCo. The same runs with Eq. 10's "
+            "advantage-weighted likelihood instead, Table 11's α = 0.01 kept, on each grid run's own TS-IDM "
+            "(`python -m study.run_choice --name adroit_guide_stochastic --override guide.mode=stochastic "
+            "tsidm.checkpoint=<the grid run's TS-IDM>`, budget as the grid's Adroit TELS). ESS / n is Kish's "
+            "effective sample size of Eq. 10's weights over the data at the end of training (1: uniform):", "",
+            "| set | seed | Eq. 9 (the default) | Eq. 10 | ESS / n | same TS-IDM |", "|---|---|---|---|---|---|",
+            *rows, "", "| set | Eq. 9 (the default) | Eq. 10 | Eq. 10 − Eq. 9, paired by seed |", "|---|---|---|---|",
+            *summary, ""]
+
+
 def _guide_cells(record: dict | None) -> str:
     """A run's score, and its guide's proposed latent step over the data's (RMS) and their cosine, at the end."""
     if record is None:
@@ -494,4 +531,5 @@ def section() -> list[str]:
               "cells are the maze's 4-unit cells, the start cell (0, 0) and the goal cell (0, 2):", ""]
     lines += guide if guide else ["No TELS maze run records its guide's weights yet."]
     lines.append("")
-    return lines + _maze_alpha0_rows() + _maze_action_rows() + _maze_arm_rows() + _adroit_guide_rows()
+    return (lines + _maze_alpha0_rows() + _maze_action_rows() + _maze_arm_rows() + _adroit_guide_rows()
+            + _adroit_mode_rows())
