@@ -95,13 +95,15 @@ def same_tsidm(other: dict, trained: dict) -> bool:
     """Whether run ``other`` acted on the TS-IDM run ``trained`` trained: the two TS-IDMs' final stage-1 losses
     agree (a retrained one matches exactly: the recipe is deterministic on one CPU thread), or, for a run that
     recorded no losses of the TS-IDM it reused (``study.run_choice``), its ``tsidm.checkpoint`` is in
-    ``trained``'s run folder (compared by the folder's last four parts, ``<work dir>/<method>/<task>/seed<k>``,
-    which survive a moved or relative path)."""
+    ``trained``'s run folder or in the folder ``trained`` itself reused its TS-IDM from (compared by the folder's
+    last four parts, ``<work dir>/<method>/<task>/seed<k>``, which survive a moved or relative path)."""
     losses, reference = _stage1_losses(other), _stage1_losses(trained)
     if losses and reference:
         return losses == reference
     source = tsidm_source(other)
-    return source is not None and Path(source).parent.parts[-4:] == Path(trained["run_dir"]).parts[-4:]
+    # the TS-IDM ``trained`` acted with lives in its own folder, or where it reused one from
+    folders = [Path(trained["run_dir"])] + [Path(p).parent for p in (tsidm_source(trained),) if p]
+    return source is not None and any(Path(source).parent.parts[-4:] == f.parts[-4:] for f in folders)
 
 
 def policy_steps(record: dict) -> int:

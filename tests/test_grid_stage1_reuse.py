@@ -125,3 +125,9 @@ def test_the_report_pairs_two_runs_only_on_one_tsidm():
     assert same_tsidm(study_arm, alpha1)
     assert not same_tsidm(study_arm, {**alpha1, "beta_results": [], "run_dir": "runs/grid/tels/pen-expert-v1-10k/seed0"})
     assert not same_tsidm({"recipe_overrides": [], "beta_results": []}, {**alpha1, "beta_results": []})
+    # a grid run that itself reused a TS-IDM acted with the one in the folder it reused it from
+    reusing_grid_run = {"run_dir": "runs/grid/tels/pen-expert-v1-10k/seed0", "beta_results": [],
+                        "recipe_overrides": ["tsidm.checkpoint=../main/runs/exp/tels/pen-expert-v1-10k/seed0/tsidm.pt"]}
+    assert same_tsidm(study_arm, reusing_grid_run)
+    assert not same_tsidm(study_arm, {**reusing_grid_run, "recipe_overrides": [
+        "tsidm.checkpoint=../main/runs/exp/tels/pen-expert-v1-10k/seed1/tsidm.pt"]})
