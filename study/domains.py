@@ -240,10 +240,7 @@ def _maze_alpha0_rows() -> list[str]:
             "| set | TELS, α = 10 (the grid's) | TELS, α = 0 | BC | α = 0 − α = 10, paired by seed | α = 0 against BC |",
             "|---|---|---|---|---|---|"]
     for task, (weighted, alpha0, bc) in arms.items():
-        by_seed = scores_by_seed(weighted)
-        paired = [s - by_seed[seed] for seed, s in scores_by_seed(alpha0).items() if seed in by_seed]
-        change = (f"{statistics.mean(paired):+.1f} ({sum(d > 0 for d in paired)} of {len(paired)} seeds up)"
-                  if paired else "no pairs")
+        change = paired_change(paired_by_seed(alpha0, weighted))
         rows.append(f"| {task} | {cell(weighted)} | {cell(alpha0)} | {cell(bc)} | {change} | "
                     f"{relation(scores(alpha0), scores(bc))} BC |")
     return [*rows, ""]
@@ -251,6 +248,20 @@ def _maze_alpha0_rows() -> list[str]:
 
 def scores_by_seed(records: list[dict]) -> dict[int, float]:
     return {r["seed"]: s for r, s in zip(records, scores(records))}
+
+
+def paired_by_seed(records: list[dict], reference: list[dict]) -> list[float]:
+    """Score differences ``records`` − ``reference`` over the seeds both have."""
+    base = scores_by_seed(reference)
+    return [s - base[seed] for seed, s in scores_by_seed(records).items() if seed in base]
+
+
+def paired_change(differences: list[float]) -> str:
+    """The mean paired difference and how many seeds went up, or ``no pairs``."""
+    if not differences:
+        return "no pairs"
+    return (f"{statistics.mean(differences):+.1f} ({sum(d > 0 for d in differences)} of {len(differences)} "
+            "seeds up)")
 
 
 def _maze_action_rows() -> list[str]:
@@ -324,29 +335,23 @@ def _maze_arm_rows() -> list[str]:
     """The maze TELS arms side by side per set, each paired by seed with the grid's TELS, beside BC."""
     if not any(runs(MAZE_STAGE1_ALPHA0, task, STUDY_RESULTS) for task in MAZE_TASKS):
         return []
-    rows, paired = [], []
+    rows, paired, reading = [], [], []
+    best = MAZE_STAGE1_ARMS[-1]
     for task in MAZE_TASKS:
         arms = [runs(folder, task, root) for _, folder, root in MAZE_STAGE1_ARMS]
         bc = runs("bc", task)
         rows.append(f"| {task} | " + " | ".join(cell(records) for records in arms) + f" | {cell(bc)} |")
-        grid = scores_by_seed(arms[0])
         for (label, _, _), records in zip(MAZE_STAGE1_ARMS[1:], arms[1:]):
-            d = [s - grid[seed] for seed, s in scores_by_seed(records).items() if seed in grid]
-            if d:
-                paired.append(f"{task}, {label}: {statistics.mean(d):+.1f} ({sum(x > 0 for x in d)} of {len(d)} "
-                              f"seeds up), {relation(scores(records), scores(bc))} BC")
-    best = MAZE_STAGE1_ARMS[-1]
-    reading = []
-    for task in MAZE_TASKS:
-        arm, grid, bc = (scores(runs(folder, task, root)) for folder, root in
-                         ((best[1], best[2]), ("tels", GRID), ("bc", GRID)))
-        by_seed = scores_by_seed(runs("tels", task))
-        wins = sum(s > by_seed[seed] for seed, s in scores_by_seed(runs(best[1], task, best[2])).items()
-                   if seed in by_seed)
-        if arm and bc:
+            differences = paired_by_seed(records, arms[0])
+            if differences:
+                paired.append(f"{task}, {label}: {paired_change(differences)}, "
+                              f"{relation(scores(records), scores(bc))} BC")
+        arm, bc_scores = scores(arms[-1]), scores(bc)
+        if arm and bc_scores:
+            wins = sum(d > 0 for d in paired_by_seed(arms[-1], arms[0]))
             reading.append(f"{task}: {statistics.mean(arm):.1f} (n={len(arm)}, above the grid's TELS on {wins} of "
-                           f"{len(arm)} seeds) against BC's {statistics.mean(bc):.1f} (n={len(bc)}), "
-                           f"{relation(arm, bc)} BC by the intervals")
+                           f"{len(arm)} seeds) against BC's {statistics.mean(bc_scores):.1f} (n={len(bc_scores)}), "
+                           f"{relation(arm, bc_scores)} BC by the intervals")
     return ["**The maze arms side by side** (guide α, TS-IDM steps; 5k policy steps, the grid's protocol; the runs "
             "of the table above):", "", "| set | " + " | ".join(label for label, _, _ in MAZE_STAGE1_ARMS)
             + " | BC |", "|---|" + "---|" * (len(MAZE_STAGE1_ARMS) + 1), *rows, "",
@@ -383,9 +388,8 @@ def _adroit_mode_rows() -> list[str]:
                         f"{'yes' if shared else 'no'} |")
             if shared:
                 paired.append(scores([record])[0] - scores([default])[0])
-        change = (f"{statistics.mean(paired):+.1f} ({sum(d > 0 for d in paired)} of {len(paired)} seeds up)"
-                  if paired else "no pairs")
-        summary.append(f"| {task} | {cell(deterministic, True)} | {cell(stochastic, True)} | {change} |")
+        summary.append(f"| {task} | {cell(deterministic, True)} | {cell(stochastic, True)} | "
+                       f"{paired_change(paired)} |")
         if paired and statistics.mean(paired) > 0 and 2 * sum(d > 0 for d in paired) > len(paired):
             wins.append(task)
     return ["**Eq. 9 or Eq. 10 on Adroit.** The paper does not say which guide its Adroit runs used; `domain=adroit` "
@@ -453,7 +457,7 @@ def _adroit_guide_rows() -> list[str]:
                                     for task, task_arms in arms.items()), ""]
     if paired:
         lines += ["α = 0.01 − α = 1, paired by seed: " + "; ".join(
-            f"{task} {statistics.mean(d):+.1f} ({sum(x > 0 for x in d)} of {len(d)} seeds up)"
+            f"{task} {paired_change(d)}"
             for task, d in paired.items()) + ".", ""]
     capped = [(task, seed, record["scores"]) for (arm, task, seed), record in run_results(PROPOSAL_CAP).items()
               if arm == "tels" and task in ADROIT_TASKS]

@@ -146,7 +146,6 @@ def fit_ensembles(ensembles: Sequence[DynamicsEnsemble], transitions: Sequence[t
         targets.append(ensemble.normalized_step(observation, next_observation))
         generators.append(torch.Generator(device=device).manual_seed(int(seed)))
     members = [e.members for e in ensembles]
-    ends = torch.tensor(members).cumsum(0).tolist()
     layers = len(ensembles[0].weights)
     weights = [torch.cat([e.weights[i].detach() for e in ensembles]).requires_grad_() for i in range(layers)]
     biases = [torch.cat([e.biases[i].detach() for e in ensembles]).requires_grad_() for i in range(layers)]
@@ -169,12 +168,12 @@ def fit_ensembles(ensembles: Sequence[DynamicsEnsemble], transitions: Sequence[t
             for record, value in zip(history, losses.tolist()):
                 record.append(value)
     with torch.no_grad():
-        for j, ensemble in enumerate(ensembles):
-            rows = slice(ends[j] - members[j], ends[j])
-            for i in range(layers):
-                ensemble.weights[i].copy_(weights[i][rows])
-                ensemble.biases[i].copy_(biases[i][rows])
-            ensemble.eval()
+        for i in range(layers):
+            for ensemble, weight, bias in zip(ensembles, weights[i].split(members), biases[i].split(members)):
+                ensemble.weights[i].copy_(weight)
+                ensemble.biases[i].copy_(bias)
+    for ensemble in ensembles:
+        ensemble.eval()
     return history
 
 
