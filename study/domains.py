@@ -85,10 +85,12 @@ def tsidm_source(record: dict) -> str | None:
 
 
 def _stage1_losses(record: dict) -> list:
-    """The final stage-1 losses of the TS-IDM a run acted with: its own, or those the grid read from the TS-IDM it
-    reused (``tsidm_reused``)."""
+    """The final stage-1 losses of the TS-IDM a run acted with: its own (the selected candidate's, under
+    ``tsidm.beta=auto``), or those the grid read from the TS-IDM it reused (``tsidm_reused``)."""
     stage1 = (record.get("tsidm_reused") or {}).get("beta_results") or record.get("beta_results") or []
-    return [b.get("final_loss") for b in stage1]
+    # with tsidm.beta=auto the run acted on the candidate it selected, the one trained at its recorded beta
+    acted = [b for b in stage1 if "beta" in record and b.get("beta") == record["beta"]]
+    return [b.get("final_loss") for b in acted or stage1]
 
 
 def same_tsidm(other: dict, trained: dict) -> bool:
@@ -175,8 +177,12 @@ def verdict_lines() -> list[str]:
                 ran += 1
                 among = "" if len(ran_here) == len(BASELINES) else (
                     f" (the baselines run there: {', '.join(run_grid.LABELS[m] for m in ran_here)})")
+                paper = scores(runs("tels_paper", task, results, steps))
+                paper_text = (f", the paper's reading {statistics.mean(paper):.1f} (n={len(paper)}), "
+                              f"{relation(paper, other)} it" if paper else "")
                 parts.append(f"{task}: TELS {statistics.mean(tels):.1f} (n={len(tels)}), {relation(tels, other)} "
-                             f"{run_grid.LABELS[best]} {statistics.mean(other):.1f} (n={len(other)}){among}")
+                             f"{run_grid.LABELS[best]} {statistics.mean(other):.1f} (n={len(other)}){among}"
+                             f"{paper_text}")
             if not parts and steps != STUDY_STEPS:
                 continue  # no longer runs in this domain yet
             missing = len(tasks) - ran
@@ -407,6 +413,47 @@ def _adroit_mode_rows() -> list[str]:
              f"Eq. 10 is up in mean and on most seeds on every set read ({', '.join(wins)})."), ""]
 
 
+def _adroit_paper_rows() -> list[str]:
+    """The paper's reading on Adroit against the default, by seed: the β App. B.5 selects, each candidate's stage-1
+    loss, and the paired difference where both acted on the same TS-IDM; nothing before a run."""
+    arms = {task: (runs("tels", task), runs("tels_paper", task)) for task in ADROIT_TASKS}
+    arms = {task: pair for task, pair in arms.items() if pair[1]}
+    if not arms:
+        return []
+    candidates = sorted({b["beta"] for _, paper in arms.values() for r in paper for b in r["beta_results"]})
+    rows, summary = [], []
+    for task, (default, paper) in arms.items():
+        by_seed = {r["seed"]: r for r in default}
+        same = []
+        for record in paper:
+            losses = {b["beta"]: b for b in record["beta_results"]}
+            weighted = min(losses.values(), key=lambda b: b["final_loss"])["beta"]
+            reference = by_seed.get(record["seed"])
+            shared = reference is not None and same_tsidm(record, reference)
+            rows.append(f"| {task} | {record['seed']} | " + " | ".join(
+                f"{losses[b]['final_sum']:.3f}" if b in losses else "—" for b in candidates)
+                + f" | {record['beta']:g} | {weighted:g} | "
+                + (f"{scores([reference])[0]:.1f}" if reference else "—") + f" | {scores([record])[0]:.1f} | "
+                + ("yes" if shared else "no") + " |")
+            if shared:
+                same.append(record)
+        summary.append(f"| {task} | {cell(default, True)} | {cell(paper, True)} | "
+                       f"{paired_change(paired_by_seed(paper, default))} | {paired_change(paired_by_seed(same, default))} |")
+    return ["**The paper's reading on Adroit.** `domain=adroit_paper` departs from the paper nowhere: β is selected "
+            "per run from {" + ", ".join(f"{b:g}" for b in candidates) + "} as App. B.5 and Table 10 say for "
+            "domains other than MuJoCo 10k (the lowest of stage 1's four terms summed unweighted, the reading that "
+            "picks the paper's own β = 1 on MuJoCo: RESULTS.md, β rule), and h_inv gets z' itself (Eq. 11 as "
+            "written). `domain=adroit` trains β = 0.01, the first candidate, from the same seed, and re-encodes the "
+            "proposal. Per run: each candidate's final unweighted sum, the β selected, the β that Eq. 7 as written "
+            "would select, and the scores (grid runs, `python -m benchmarks.run_grid --method tels_paper`, budget "
+            "as the grid's Adroit TELS):", "",
+            "| set | seed | " + " | ".join(f"sum at β = {b:g}" for b in candidates)
+            + " | β selected | Eq. 7's pick | default | paper's reading | same TS-IDM |",
+            "|---|---|" + "---|" * (len(candidates) + 5), *rows, "",
+            "| set | default | paper's reading | paper's − default's, paired by seed | on the same TS-IDM |",
+            "|---|---|---|---|---|", *summary, ""]
+
+
 def _guide_cells(record: dict | None) -> str:
     """A run's score, and its guide's proposed latent step over the data's (RMS) and their cosine, at the end."""
     if record is None:
@@ -502,7 +549,9 @@ def section() -> list[str]:
              "umaze env (`torchrl_tels.envs.antmaze`); Adroit 10 episodes every 500 steps in gymnasium-robotics' "
              "envs with D4RL's reward and episode length (`torchrl_tels.envs.adroit`), with D4RL's success rate "
              "after the score. TELS runs `domain=maze` (Table 11's AntMaze values, Eq. 10) and `domain=adroit` "
-             "(Table 11's values for other tasks, Eq. 9; see \"Where the guide's proposals go on Adroit\" below). "
+             "(Table 11's values for other tasks, Eq. 9; see \"Where the guide's proposals go on Adroit\" below), "
+             "and in the paper's reading `domain=adroit_paper` (β selected as App. B.5 says; see \"The paper's "
+             "reading on Adroit\"). "
              "Every number is in the grid's JSONs ([TABLE.md](../benchmarks/results/TABLE.md)).", "",
              "| set | " + " | ".join(HEADERS) + " | DAPG expert (ceiling) |",
              "|---|" + "---|" * (len(HEADERS) + 1)]
@@ -544,4 +593,4 @@ def section() -> list[str]:
     lines += guide if guide else ["No TELS maze run records its guide's weights yet."]
     lines.append("")
     return (lines + _maze_alpha0_rows() + _maze_action_rows() + _maze_arm_rows() + _adroit_guide_rows()
-            + _adroit_mode_rows())
+            + _adroit_mode_rows() + _adroit_paper_rows())

@@ -131,3 +131,8 @@ def test_the_report_pairs_two_runs_only_on_one_tsidm():
     assert same_tsidm(study_arm, reusing_grid_run)
     assert not same_tsidm(study_arm, {**reusing_grid_run, "recipe_overrides": [
         "tsidm.checkpoint=../main/runs/exp/tels/pen-expert-v1-10k/seed1/tsidm.pt"]})
+    # a beta=auto run acted on the candidate it selected: it pairs with a run of that beta's TS-IDM, not another's
+    auto = {"beta": 0.01, "beta_results": [{"beta": 0.01, "final_loss": 2.03}, {"beta": 0.1, "final_loss": 2.4},
+                                           {"beta": 1.0, "final_loss": 3.1}]}
+    assert same_tsidm(auto, {**alpha1, "beta": 0.01})
+    assert not same_tsidm({**auto, "beta": 1.0}, {**alpha1, "beta": 0.01})
