@@ -189,6 +189,13 @@ def verdict_lines() -> list[str]:
             lines.append(f"**{label}** at {budget}: " + ("; ".join(parts) if parts else "no set has both TELS and "
                          "a baseline yet") + (f"; {missing} of {len(tasks)} sets lack TELS or every baseline"
                                              if missing else "") + ".")
+    bc = [(task, scores(runs("bc", task)), run_grid.PAPER_TABLE1.get(task, {}).get("bc")) for task in ADROIT_TASKS]
+    bc = [(task, ours, paper[0]) for task, ours, paper in bc if ours and paper]
+    if bc:
+        lines.append(f"**Adroit, BC**: Tables 1 and 6 give BC {min(p for *_, p in bc):.1f}–{max(p for *_, p in bc):.1f} "
+                     "on these sets; ours, on the same data and budget as TELS, scores " + "; ".join(
+                         f"{task} {statistics.mean(ours):.1f} (n={len(ours)}; the paper's {paper:.1f})"
+                         for task, ours, paper in bc) + ".")
     best = [(task, scores(runs(MAZE_STAGE1_ALPHA0, task, STUDY_RESULTS)), scores(runs("bc", task)))
             for task in MAZE_TASKS]
     best = [f"{task}: {statistics.mean(arm):.1f} (n={len(arm)}), {relation(arm, bc)} BC {statistics.mean(bc):.1f}"
