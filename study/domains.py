@@ -444,8 +444,11 @@ def _adroit_paper_rows() -> list[str]:
                 + ("yes" if shared else "no") + " |")
             if shared:
                 same.append(record)
-        summary.append(f"| {task} | {cell(default, True)} | {cell(paper, True)} | "
-                       f"{paired_change(paired_by_seed(paper, default))} | {paired_change(paired_by_seed(same, default))} |")
+        summary.append((task, default, paper, same))
+    shared = any(same for *_, same in summary)  # a column of its own only where the rule selected the default's β
+    summary = [f"| {task} | {cell(default, True)} | {cell(paper, True)} | {paired_change(paired_by_seed(paper, default))} |"
+               + (f" {paired_change(paired_by_seed(same, default))} |" if shared else "")
+               for task, default, paper, same in summary]
     return ["**The paper's reading on Adroit.** `domain=adroit_paper` departs from the paper nowhere: β is selected "
             "per run from {" + ", ".join(f"{b:g}" for b in candidates) + "} as App. B.5 and Table 10 say for "
             "domains other than MuJoCo 10k (the lowest of stage 1's four terms summed unweighted, the reading that "
@@ -457,8 +460,8 @@ def _adroit_paper_rows() -> list[str]:
             "| set | seed | " + " | ".join(f"sum at β = {b:g}" for b in candidates)
             + " | β selected | Eq. 7's pick | default | paper's reading | same TS-IDM |",
             "|---|---|" + "---|" * (len(candidates) + 5), *rows, "",
-            "| set | default | paper's reading | paper's − default's, paired by seed | on the same TS-IDM |",
-            "|---|---|---|---|---|", *summary, ""]
+            "| set | default | paper's reading | paper's − default's, paired by seed |"
+            + (" on the same TS-IDM |" if shared else ""), "|---|---|---|---|" + ("---|" if shared else ""), *summary, ""]
 
 
 def _guide_cells(record: dict | None) -> str:
