@@ -124,6 +124,9 @@ def is_maze(task: str) -> bool:
 #: the grid's Adroit TELS runs under ``domain=adroit``'s former α (1, the ``mujoco`` domain's departure): a results
 #: folder of its own under the grid's, beside ``long20k``
 ADROIT_ALPHA1 = "adroit_alpha1"
+#: the grid's Adroit TELS runs under ``domain=adroit``'s former MuJoCo departures (β = 0.01, the proposal
+#: re-encoded), α = 0.01: a results folder of its own under the grid's
+ADROIT_DEPARTURES = "adroit_mujoco_departures"
 
 
 def is_adroit(task: str) -> bool:
@@ -163,6 +166,8 @@ def one_command(args, method: str, task: str, seed: int) -> list[str]:
         cmd.append(f"--threads={args.threads}")
     if args.tsidm_from is not None:
         cmd.append(f"--tsidm-from={args.tsidm_from}")
+    if args.tsidm_from_method is not None:
+        cmd.append(f"--tsidm-from-method={args.tsidm_from_method}")
     # JSON reads back as YAML with the same value and type (str() would turn 1e-05 and None into strings)
     cmd += [f"--set={key}={value if isinstance(value, str) else json.dumps(value)}" for key, value in args.set.items()]
     return cmd
@@ -198,7 +203,8 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     if started_from is not None:  # an interrupted or finished run resumes with the TS-IDM it started from
         overrides.append(f"tsidm.checkpoint={started_from}")
     elif args.tsidm_from is not None:
-        reused = reusable_tsidm(tels_run_dir(args.tsidm_from, task, seed, method), task, overrides)
+        source = tels_run_dir(args.tsidm_from, task, seed, args.tsidm_from_method or method)
+        reused = reusable_tsidm(source, task, overrides)
         if reused is not None:
             overrides.append(f"tsidm.checkpoint={reused['from']}")
     run_recipe(overrides, args.threads)
@@ -469,14 +475,14 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
     adroit_tels = [r for t in tasks if is_adroit(t) for r in found[t].get("tels", [])]
-    if (results_dir / ADROIT_ALPHA1).is_dir():
-        reused = sum("tsidm_reused" in r or any(str(o).startswith("tsidm.checkpoint=") for o in r.get("recipe_overrides", []))
-                     for r in adroit_tels)
-        lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands (Eq. 9's α = 0.01, Table 11's): "
-                  f"{reused} of its {len(adroit_tels)} runs started stage 2 from the TS-IDM of the same seed's run with "
-                  f"α = 1, the domain's value before (`--tsidm-from`), the others trained their own; the α = 1 runs "
-                  f"are in `{ADROIT_ALPHA1}/`, and the two side by side in `study/REPORT.md` (\"Where the guide's "
-                  "proposals go on Adroit\")."]
+    if adroit_tels and (results_dir / ADROIT_DEPARTURES).is_dir():
+        reused = sum("tsidm_reused" in r for r in adroit_tels)
+        lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands, the paper's values for other "
+                  f"tasks (β selected, Eq. 9, α = 0.01): {reused} of its {len(adroit_tels)} runs started stage 2 from "
+                  "the TS-IDM of the same seed's paper's-reading run (`--tsidm-from`; the same stage-1 settings), the "
+                  f"others trained their own. The domain's earlier runs, with MuJoCo's departures, are in "
+                  f"`{ADROIT_DEPARTURES}/`, and with α = 1 as well in `{ADROIT_ALPHA1}/`; `study/REPORT.md` sets them "
+                  "side by side (\"Where the guide's proposals go on Adroit\", \"The paper's reading on Adroit\")."]
 
     ablation_tasks = [t for t in tasks if any(m in found[t] for m in ABLATIONS)]
     if ablation_tasks:
@@ -1078,6 +1084,9 @@ def parse_args(argv=None):
                         help="a --work-dir of an earlier grid: each TELS run starts stage 2 from the TS-IDM of "
                              "its run there (same method, task and seed) where that stage 1 had the same "
                              "settings, e.g. to rerun stage 2 after one of its defaults changed")
+    parser.add_argument("--tsidm-from-method", "--tsidm_from_method", choices=TELS_METHODS, default=None,
+                        metavar="M", help="with --tsidm-from: the TS-IDMs of this method's runs there (default: "
+                                          "the same method), e.g. when a domain's default takes its paper's values")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a baseline hyperparameter (benchmarks/baselines.py), e.g. reward_scale=return_range; "
                              "recorded in the result, so give such runs their own --results-dir (repeatable)")

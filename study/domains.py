@@ -54,7 +54,10 @@ MAZE_ACTION_ARMS = (("maze_long20k", "α = 10 (the grid's), 20k policy steps", (
                      20000))
 #: the grid's Adroit TELS runs with α = 1, ``domain=adroit``'s value before it kept Table 11's
 ADROIT_ALPHA1 = GRID / run_grid.ADROIT_ALPHA1
-#: ``domain=adroit`` with Eq. 10's guide instead of Eq. 9's, on the grid's TS-IDMs (``study.run_choice --name
+#: the grid's Adroit TELS runs with α = 0.01 and MuJoCo's two other departures (β = 0.01, the proposal
+#: re-encoded), ``domain=adroit`` before it took the paper's values
+ADROIT_DEPARTURES = GRID / run_grid.ADROIT_DEPARTURES
+#: ``domain=adroit`` with MuJoCo's departures, Eq. 10's guide instead of Eq. 9's, on its TS-IDMs (``study.run_choice --name
 #: adroit_guide_stochastic --override guide.mode=stochastic tsidm.checkpoint=<the grid run's TS-IDM>``)
 ADROIT_STOCHASTIC = "adroit_guide_stochastic"
 #: the guide's proposals re-evaluated with their step capped (``study.proposal_cap``): <arm>-<set>-seed<k>.json
@@ -383,8 +386,10 @@ def _maze_arm_rows() -> list[str]:
 
 
 def _adroit_mode_rows() -> list[str]:
-    """Eq. 9 (``domain=adroit``'s guide) against Eq. 10 on the same TS-IDMs, by seed; nothing before a run."""
-    arms = {task: (runs("tels", task), runs(ADROIT_STOCHASTIC, task, STUDY_RESULTS)) for task in ADROIT_TASKS}
+    """Eq. 9 (``domain=adroit``'s guide) against Eq. 10 on the same TS-IDMs, by seed, both with MuJoCo's
+    departures (``domain=adroit`` when these ran); nothing before a run."""
+    arms = {task: (runs("tels", task, ADROIT_DEPARTURES), runs(ADROIT_STOCHASTIC, task, STUDY_RESULTS))
+            for task in ADROIT_TASKS}
     arms = {task: pair for task, pair in arms.items() if pair[1]}
     if not arms:
         return []
@@ -408,13 +413,15 @@ def _adroit_mode_rows() -> list[str]:
         if paired and statistics.mean(paired) > 0 and 2 * sum(d > 0 for d in paired) > len(paired):
             wins.append(task)
     return ["**Eq. 9 or Eq. 10 on Adroit.** The paper does not say which guide its Adroit runs used; `domain=adroit` "
-            "takes Eq. 9's deterministic guide, as for dense-reward MuJoCo. The same runs with Eq. 10's "
-            "advantage-weighted likelihood instead, Table 11's α = 0.01 kept, on each grid run's own TS-IDM "
+            "takes Eq. 9's deterministic guide, as for dense-reward MuJoCo. Its runs with MuJoCo's departures "
+            "(β = 0.01, the proposal re-encoded: the domain when these ran, `benchmarks/results/"
+            f"{run_grid.ADROIT_DEPARTURES}`) with Eq. 10's "
+            "advantage-weighted likelihood instead, Table 11's α = 0.01 kept, on each such run's own TS-IDM "
             "(`python -m study.run_choice --name adroit_guide_stochastic --override guide.mode=stochastic "
             "tsidm.checkpoint=<the grid run's TS-IDM>`, budget as the grid's Adroit TELS). ESS / n is Kish's "
             "effective sample size of Eq. 10's weights over the data at the end of training (1: uniform):", "",
-            "| set | seed | Eq. 9 (the default) | Eq. 10 | ESS / n | same TS-IDM |", "|---|---|---|---|---|---|",
-            *rows, "", "| set | Eq. 9 (the default) | Eq. 10 | Eq. 10 − Eq. 9, paired by seed |", "|---|---|---|---|",
+            "| set | seed | Eq. 9 | Eq. 10 | ESS / n | same TS-IDM |", "|---|---|---|---|---|---|",
+            *rows, "", "| set | Eq. 9 | Eq. 10 | Eq. 10 − Eq. 9, paired by seed |", "|---|---|---|---|",
             *summary, "",
             (f"Eq. 10 is up in mean and on most seeds on {len(wins)} of the {len(arms)} sets read"
              + (f" ({', '.join(wins)})" if wins else "") + "; to replace the default it would have to be up on every "
@@ -423,9 +430,10 @@ def _adroit_mode_rows() -> list[str]:
 
 
 def _adroit_paper_rows() -> list[str]:
-    """The paper's reading on Adroit against the default, by seed: the β App. B.5 selects, each candidate's stage-1
-    loss, and the paired difference where both acted on the same TS-IDM; nothing before a run."""
-    arms = {task: (runs("tels", task), runs("tels_paper", task)) for task in ADROIT_TASKS}
+    """The paper's reading on Adroit against MuJoCo's departures (``domain=adroit`` before it took the paper's
+    values), by seed: the β App. B.5 selects, each candidate's stage-1 loss, and the paired difference where both
+    acted on the same TS-IDM; nothing before a run."""
+    arms = {task: (runs("tels", task, ADROIT_DEPARTURES), runs("tels_paper", task)) for task in ADROIT_TASKS}
     arms = {task: pair for task, pair in arms.items() if pair[1]}
     if not arms:
         return []
@@ -455,16 +463,41 @@ def _adroit_paper_rows() -> list[str]:
             "per run from {" + ", ".join(f"{b:g}" for b in candidates) + "} as App. B.5 and Table 10 say for "
             "domains other than MuJoCo 10k (the lowest of stage 1's four terms summed unweighted, the reading that "
             "picks the paper's own β = 1 on MuJoCo: RESULTS.md, β rule), and h_inv gets z' itself (Eq. 11 as "
-            "written). `domain=adroit` trains β = 0.01, the first candidate, from the same seed, and re-encodes the "
+            "written). MuJoCo's departures (`domain=adroit` when these ran) train β = 0.01, the first candidate, "
+            "from the same seed, and re-encode the "
             "proposal. Per run: each candidate's final unweighted sum, the β selected, the β that Eq. 7 as written "
             "would select, and the scores (grid runs, `python -m benchmarks.run_grid --method tels_paper`, budget "
             "as the grid's Adroit TELS):", "",
             "| set | seed | " + " | ".join(f"sum at β = {b:g}" for b in candidates)
-            + " | β selected | Eq. 7's pick | default | paper's reading | same TS-IDM |",
+            + " | β selected | Eq. 7's pick | departures | paper's reading | same TS-IDM |",
             "|---|---|" + "---|" * (len(candidates) + 5), *rows, "",
-            "| set | default | paper's reading | paper's − default's, paired by seed |"
+            "| set | departures | paper's reading | paper's − departures', paired by seed |"
             + (" on the same TS-IDM |" if any_shared else ""), "|---|---|---|---|" + ("---|" if any_shared else ""),
-            *summary, ""]
+            *summary, "", _adroit_default_reading(by_set), ""]
+
+
+def _adroit_default_reading(by_set: list[tuple]) -> str:
+    """How the paper's reading fared against MuJoCo's departures, and whether the default's runs (the paper's
+    values since) repeat the paper's reading's scores on the TS-IDMs they reused."""
+    differences = {task: paired_by_seed(paper, departures) for task, departures, paper, _ in by_set}
+    up_sets = [task for task, d in differences.items() if d and statistics.mean(d) > 0]
+    seeds = [d for task_d in differences.values() for d in task_d]
+    reading = (f"The paper's reading is up in mean on {len(up_sets)} of {len(differences)} sets and on "
+               f"{sum(d > 0 for d in seeds)} of {len(seeds)} seeds. "
+               + ("The departures lose broadly" if len(up_sets) == len(differences) and 2 * sum(d > 0 for d in seeds)
+                  > len(seeds) else "The departures do not win broadly")
+               + ", so by the study's rule (the paper's value unless a change wins broadly) `domain=adroit` takes the "
+               "paper's values. Its runs, "
+               "the TELS (default) column above, start stage 2 from the paper's-reading run's TS-IDM of the same "
+               "seed (`python -m benchmarks.run_grid --method tels --tsidm-from <the grid's work dir> "
+               "--tsidm-from-method tels_paper`), the stage-1 settings being the same")
+    repeated = [(scores([r])[0], scores([by_seed[r["seed"]]])[0]) for task in ADROIT_TASKS
+                for by_seed in [{p["seed"]: p for p in runs("tels_paper", task)}]
+                for r in runs("tels", task) if r["seed"] in by_seed and same_tsidm(r, by_seed[r["seed"]])]
+    if repeated:
+        reading += (f"; on {sum(a == b for a, b in repeated)} of the {len(repeated)} such runs the default's score "
+                    "equals the paper's reading's to the last digit")
+    return reading + "."
 
 
 def _guide_cells(record: dict | None) -> str:
@@ -479,7 +512,7 @@ def _guide_cells(record: dict | None) -> str:
 def _adroit_guide_rows() -> list[str]:
     """Where the deterministic guide's proposals go on Adroit, under the default's α and Table 11's, and what
     capping them does to a trained run (``study.proposal_cap``); nothing before a run records its guide."""
-    arms = {task: (runs("tels", task, ADROIT_ALPHA1), runs("tels", task), runs("bc", task))
+    arms = {task: (runs("tels", task, ADROIT_ALPHA1), runs("tels", task, ADROIT_DEPARTURES), runs("bc", task))
             for task in ADROIT_TASKS}
     rows, paired = [], {}
     for task, (alpha1, alpha_paper, bc) in arms.items():
@@ -503,16 +536,17 @@ def _adroit_guide_rows() -> list[str]:
              + (f"; on the {len(maze_ratio)} maze runs read above the ratio is {min(maze_ratio):.2f}–"
                 f"{max(maze_ratio):.2f}" if maze_ratio else "")
              + ". `domain=adroit` weighted Eq. (9)'s value term with α = 1, the `mujoco` domain's departure, until "
-             "these runs (`benchmarks/results/adroit_alpha1`); Table 11 gives 0.01 for \"other tasks\", which "
-             "`domain=adroit` keeps since, so the α = 0.01 runs are the default's cells above: the grid's "
+             f"these runs (`benchmarks/results/{run_grid.ADROIT_ALPHA1}`); Table 11 gives 0.01 for \"other tasks\", "
+             "which `domain=adroit` keeps since. Both arms here keep MuJoCo's two other departures, as the domain "
+             f"did then; the α = 0.01 runs are in `benchmarks/results/{run_grid.ADROIT_DEPARTURES}` "
              "(`python -m benchmarks.run_grid --grid --method tels --tsidm-from <the α = 1 grid's work dir>`, "
              "which starts stage 2 from the α = 1 run's TS-IDM of the same seed, or trains one where that is "
              "gone). "
              "\"Same TS-IDM\": the α = 0.01 run acted on the α = 1 run's TS-IDM, reused or trained again to the "
              "same final loss; only those seeds enter the paired differences:", "",
-             "| set | seed | α = 1 (the default before): score | proposed / data step | cosine | α = 0.01 (the default): score | "
+             "| set | seed | α = 1: score | proposed / data step | cosine | α = 0.01: score | "
              "proposed / data step | cosine | same TS-IDM | BC |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
-    lines += ["Per set, over every seed each arm has:", "", "| set | α = 1 (the default before) | α = 0.01 (the default) | BC |",
+    lines += ["Per set, over every seed each arm has:", "", "| set | α = 1 | α = 0.01 | BC |",
               "|---|---|---|---|", *(f"| {task} | " + " | ".join(cell(records, True) for records in task_arms) + " |"
                                     for task, task_arms in arms.items()), ""]
     if paired:
@@ -562,9 +596,9 @@ def section() -> list[str]:
              "umaze env (`torchrl_tels.envs.antmaze`); Adroit 10 episodes every 500 steps in gymnasium-robotics' "
              "envs with D4RL's reward and episode length (`torchrl_tels.envs.adroit`), with D4RL's success rate "
              "after the score. TELS runs `domain=maze` (Table 11's AntMaze values, Eq. 10) and `domain=adroit` "
-             "(Table 11's values for other tasks, Eq. 9; see \"Where the guide's proposals go on Adroit\" below), "
-             "and in the paper's reading `domain=adroit_paper` (β selected as App. B.5 says; see \"The paper's "
-             "reading on Adroit\"). "
+             "(Tables 10-11's values for other tasks, β selected as App. B.5 says, Eq. 9: the same values as "
+             "`domain=adroit_paper`, the paper's reading, since MuJoCo's departures did not win there; see \"The "
+             "paper's reading on Adroit\" and \"Where the guide's proposals go on Adroit\" below). "
              "Every number is in the grid's JSONs ([TABLE.md](../benchmarks/results/TABLE.md)).", "",
              "| set | " + " | ".join(HEADERS) + " | DAPG expert (ceiling) |",
              "|---|" + "---|" * (len(HEADERS) + 1)]

@@ -52,7 +52,8 @@ def _fake_recipe(calls: list):
         cfg = recipe_config(with_pinned_precision(overrides))
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
         (run_dir / "state.pt").write_bytes(b"a run's state")
-        _tsidm_file(run_dir / "tsidm.pt", beta=float(cfg.tsidm.beta))
+        beta = 1.0 if cfg.tsidm.beta == "auto" else float(cfg.tsidm.beta)  # the candidate "auto" selected
+        _tsidm_file(run_dir / "tsidm.pt", dataset=cfg.dataset.name, beta=beta)
         (run_dir / "results.json").write_text(json.dumps({"final_normalized_score_mean": 1.0, "budget": {}}))
         return ["recipe", *overrides]
 
@@ -110,6 +111,29 @@ def test_tsidm_from_reuses_a_matching_stage1_and_trains_its_own_otherwise(tmp_pa
 
     with pytest.raises(SystemExit):
         _grid(tmp_path, "first", "--tsidm-from", str(tmp_path / "first"))
+
+
+def test_tsidm_from_method_reuses_another_arms_stage1_only_with_the_same_settings(tmp_path, monkeypatch, capsys):
+    """On Adroit the default and the paper's reading share their stage-1 settings, on MuJoCo they do not."""
+    calls: list = []
+    monkeypatch.setattr(run_grid, "run_recipe", _fake_recipe(calls))
+
+    def grid(method: str, task: str, work: str, *extra: str):
+        return run_grid.parse_args(["--method", method, "--task", task, "--seed", "1", "--steps", "10",
+                                    "--tsidm-steps", "5", "--eval-interval", "5", "--results-dir",
+                                    str(tmp_path / work), "--work-dir", str(tmp_path / work), *extra])
+
+    for task in ("door-human-v1", TASK):
+        run_grid.run_one("tels_paper", task, 1, grid("tels_paper", task, "paper"))
+    reuse = ("--tsidm-from", str(tmp_path / "paper"), "--tsidm-from-method", "tels_paper")
+    run_grid.run_one("tels", "door-human-v1", 1, grid("tels", "door-human-v1", "default", *reuse))
+    source = tmp_path / "paper" / "tels_paper" / "door-human-v1" / "seed1" / "tsidm.pt"
+    assert _checkpoint_overrides(calls[-1]) == [f"tsidm.checkpoint={source}"]
+    assert "--tsidm-from-method=tels_paper" in run_grid.one_command(grid("tels", TASK, "x", *reuse), "tels", TASK, 1)
+
+    run_grid.run_one("tels", TASK, 1, grid("tels", TASK, "default", *reuse))
+    assert _checkpoint_overrides(calls[-1]) == []
+    assert "tsidm.beta: 1.0 -> 0.01" in capsys.readouterr().out
 
 
 def test_the_report_pairs_two_runs_only_on_one_tsidm():

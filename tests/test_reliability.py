@@ -579,8 +579,8 @@ def test_write_text_replaces_whole_file_and_leaves_no_temp(tmp_path, monkeypatch
 
 def test_config_groups_compose_domain_and_budget():
     """The base is the paper; ``domain=mujoco`` departs where README's deviation table says,
-    ``domain=maze`` takes Table 11's AntMaze values, ``domain=adroit`` keeps Table 11's α for other tasks
-    with MuJoCo's other departures, ``domain=adroit_paper`` selects β as App. B.5 does for other domains, and the budget group only sets lengths."""
+    ``domain=maze`` takes Table 11's AntMaze values, ``domain=adroit`` and ``domain=adroit_paper`` take Tables
+    10-11's values for other tasks and select β as App. B.5 does, and the budget group only sets lengths."""
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         paper = compose("config", overrides=["domain=paper", "budget=paper"])
         mujoco, maze = compose("config"), compose("config", overrides=["domain=maze", "budget=paper"])
@@ -588,13 +588,15 @@ def test_config_groups_compose_domain_and_budget():
         adroit_paper = compose("config", overrides=["domain=adroit_paper", "budget=paper"])
         smoke = compose("config", overrides=["budget=smoke"])
     assert (adroit.guide.alpha, adroit.value.expectile, adroit.tsidm.weight_decay) == (0.01, 0.7, 1e-5)
-    assert adroit.guide.alpha != mujoco.guide.alpha and adroit.tsidm.beta == mujoco.tsidm.beta
-    assert adroit.guide.reencode_proposal is True and adroit.guide.mode == "deterministic"
+    assert adroit.guide.alpha != mujoco.guide.alpha and adroit.tsidm.beta == "auto"
+    assert adroit.guide.reencode_proposal is False and adroit.guide.mode == "deterministic"
     assert mujoco.guide.mode == "deterministic" and mujoco.guide.reencode_proposal is True
     assert maze.guide.mode == "stochastic" and maze.guide.reencode_proposal is False
     # App. B.5: "other domains" select beta by the TS-IDM loss; the paper's reading departs nowhere else
     assert adroit_paper.tsidm.beta == "auto" and adroit_paper.tsidm.beta_selection == paper.tsidm.beta_selection
     assert adroit_paper.guide == paper.guide and adroit_paper.tsidm.weight_decay == 1e-5
+    # the default on Adroit keeps no MuJoCo departure: the paper's reading but for the episode budget group
+    assert adroit.guide == adroit_paper.guide and adroit.tsidm.beta_selection == adroit_paper.tsidm.beta_selection
     assert paper.tsidm.beta == 1.0 and maze.tsidm.beta == 1.0
     assert paper.guide.alpha == 0.01 and maze.guide.alpha == 10.0
     assert paper.tsidm.latent_scale == "free" and paper.guide.tsym_relative is False
