@@ -476,11 +476,12 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
     adroit_tels = [r for t in tasks if is_adroit(t) for r in found[t].get("tels", [])]
     if adroit_tels and (results_dir / ADROIT_DEPARTURES).is_dir():
-        reused = sum("tsidm_reused" in r for r in adroit_tels)
+        reused = sum(Path((r.get("tsidm_reused") or {}).get("from", "")).parent.parts[-3:-2] == ("tels_paper",)
+                     for r in adroit_tels)
         lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands, the paper's values for other "
                   f"tasks (β selected, Eq. 9, α = 0.01): {reused} of its {len(adroit_tels)} runs started stage 2 from "
-                  "the TS-IDM of the same seed's paper's-reading run (`--tsidm-from`; the same stage-1 settings), the "
-                  f"others trained their own. The domain's earlier runs, with MuJoCo's departures, are in "
+                  "the TS-IDM of the same seed's paper's-reading run (`--tsidm-from-method tels_paper`; the same "
+                  f"stage-1 settings). The domain's earlier runs, with MuJoCo's departures, are in "
                   f"`{ADROIT_DEPARTURES}/`, and with α = 1 as well in `{ADROIT_ALPHA1}/`; `study/REPORT.md` sets them "
                   "side by side (\"Where the guide's proposals go on Adroit\", \"The paper's reading on Adroit\")."]
 
@@ -1131,6 +1132,8 @@ def parse_args(argv=None):
         args.tsidm_from = args.tsidm_from.resolve()
         if args.tsidm_from == args.work_dir:
             parser.error("--tsidm-from names --work-dir itself: give the earlier grid's work dir, and this grid a new one")
+    elif args.tsidm_from_method is not None:
+        parser.error("--tsidm-from-method needs --tsidm-from: the earlier grid's work dir")
     args.longer = [folder.resolve() for folder in args.longer]
     if args.table and not args.longer and args.results_dir == DEFAULT_RESULTS.resolve():
         args.longer = [folder for folder in DEFAULT_LONGER if folder.is_dir()]

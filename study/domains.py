@@ -418,7 +418,8 @@ def _adroit_mode_rows() -> list[str]:
             f"{run_grid.ADROIT_DEPARTURES}`) with Eq. 10's "
             "advantage-weighted likelihood instead, Table 11's α = 0.01 kept, on each such run's own TS-IDM "
             "(`python -m study.run_choice --name adroit_guide_stochastic --override guide.mode=stochastic "
-            "tsidm.checkpoint=<the grid run's TS-IDM>`, budget as the grid's Adroit TELS). ESS / n is Kish's "
+            "tsidm.checkpoint=<the grid run's TS-IDM>`, budget as the grid's Adroit TELS; today that also needs "
+            "`guide.reencode_proposal=true`). ESS / n is Kish's "
             "effective sample size of Eq. 10's weights over the data at the end of training (1: uniform):", "",
             "| set | seed | Eq. 9 | Eq. 10 | ESS / n | same TS-IDM |", "|---|---|---|---|---|---|",
             *rows, "", "| set | Eq. 9 | Eq. 10 | Eq. 10 − Eq. 9, paired by seed |", "|---|---|---|---|",
@@ -455,7 +456,7 @@ def _adroit_paper_rows() -> list[str]:
             if shared:
                 same.append(record)
         by_set.append((task, default, paper, same))
-    any_shared = any(same for *_, same in by_set)  # a column of its own only where the rule selected the default's β
+    any_shared = any(same for *_, same in by_set)  # a column of its own only where the rule selected the departures' β
     summary = [f"| {task} | {cell(default, True)} | {cell(paper, True)} | {paired_change(paired_by_seed(paper, default))} |"
                + (f" {paired_change(paired_by_seed(same, default))} |" if any_shared else "")
                for task, default, paper, same in by_set]
@@ -476,28 +477,42 @@ def _adroit_paper_rows() -> list[str]:
             *summary, "", _adroit_default_reading(by_set), ""]
 
 
+def _wins_broadly(differences: dict[str, list[float]]) -> bool:
+    """Whether an arm, by its paired differences per set, is up in mean on every set and on most seeds."""
+    seeds = [d for task_d in differences.values() for d in task_d]
+    return (all(d and statistics.mean(d) > 0 for d in differences.values())
+            and 2 * sum(d > 0 for d in seeds) > len(seeds))
+
+
+def _reused_from(record: dict, method: str) -> bool:
+    """Whether a run started stage 2 from a TS-IDM that a ``method`` run of a grid trained."""
+    source = tsidm_source(record)
+    return source is not None and Path(source).parent.parts[-3:-2] == (method,)
+
+
 def _adroit_default_reading(by_set: list[tuple]) -> str:
     """How the paper's reading fared against MuJoCo's departures, and whether the default's runs (the paper's
     values since) repeat the paper's reading's scores on the TS-IDMs they reused."""
     differences = {task: paired_by_seed(paper, departures) for task, departures, paper, _ in by_set}
-    up_sets = [task for task, d in differences.items() if d and statistics.mean(d) > 0]
     seeds = [d for task_d in differences.values() for d in task_d]
-    reading = (f"The paper's reading is up in mean on {len(up_sets)} of {len(differences)} sets and on "
-               f"{sum(d > 0 for d in seeds)} of {len(seeds)} seeds. "
-               + ("The departures lose broadly" if len(up_sets) == len(differences) and 2 * sum(d > 0 for d in seeds)
-                  > len(seeds) else "The departures do not win broadly")
-               + ", so by the study's rule (the paper's value unless a change wins broadly) `domain=adroit` takes the "
-               "paper's values. Its runs, "
-               "the TELS (default) column above, start stage 2 from the paper's-reading run's TS-IDM of the same "
-               "seed (`python -m benchmarks.run_grid --method tels --tsidm-from <the grid's work dir> "
-               "--tsidm-from-method tels_paper`), the stage-1 settings being the same")
-    repeated = [(scores([r])[0], scores([by_seed[r["seed"]]])[0]) for task in ADROIT_TASKS
-                for by_seed in [{p["seed"]: p for p in runs("tels_paper", task)}]
-                for r in runs("tels", task) if r["seed"] in by_seed and same_tsidm(r, by_seed[r["seed"]])]
-    if repeated:
-        reading += (f"; on {sum(a == b for a, b in repeated)} of the {len(repeated)} such runs the default's score "
-                    "equals the paper's reading's to the last digit")
-    return reading + "."
+    reading = (f"The paper's reading is up in mean on {sum(bool(d) and statistics.mean(d) > 0 for d in differences.values())} "
+               f"of {len(differences)} sets and on {sum(d > 0 for d in seeds)} of {len(seeds)} seeds. ")
+    if _wins_broadly({task: [-x for x in d] for task, d in differences.items()}):
+        return reading + ("The departures win broadly, so by the study's rule (the paper's value unless a change "
+                          "wins broadly) `domain=adroit` should keep them.")
+    reading += ("The departures do not win broadly, so by the study's rule (the paper's value unless a change wins "
+                "broadly) `domain=adroit` takes the paper's values.")
+    reused = [(r, paper[r["seed"]]) for task in ADROIT_TASKS
+              for paper in [{p["seed"]: p for p in runs("tels_paper", task)}]
+              for r in runs("tels", task) if _reused_from(r, "tels_paper") and r["seed"] in paper]
+    if reused:
+        same = sum(scores([r])[0] == scores([p])[0] for r, p in reused)
+        reading += (f" {len(reused)} of its runs, in the TELS (default) column above, started stage 2 from the "
+                    "paper's-reading run's TS-IDM of the same seed, the stage-1 settings being the same (`python -m "
+                    "benchmarks.run_grid --method tels --work-dir <a new work dir> --tsidm-from <the grid's work dir> "
+                    f"--tsidm-from-method tels_paper`); on {same} of them the score equals the paper's reading's to "
+                    "the last digit.")
+    return reading
 
 
 def _guide_cells(record: dict | None) -> str:
@@ -510,7 +525,7 @@ def _guide_cells(record: dict | None) -> str:
 
 
 def _adroit_guide_rows() -> list[str]:
-    """Where the deterministic guide's proposals go on Adroit, under the default's α and Table 11's, and what
+    """Where the deterministic guide's proposals go on Adroit, under MuJoCo's α and Table 11's, and what
     capping them does to a trained run (``study.proposal_cap``); nothing before a run records its guide."""
     arms = {task: (runs("tels", task, ADROIT_ALPHA1), runs("tels", task, ADROIT_DEPARTURES), runs("bc", task))
             for task in ADROIT_TASKS}
@@ -539,9 +554,9 @@ def _adroit_guide_rows() -> list[str]:
              f"these runs (`benchmarks/results/{run_grid.ADROIT_ALPHA1}`); Table 11 gives 0.01 for \"other tasks\", "
              "which `domain=adroit` keeps since. Both arms here keep MuJoCo's two other departures, as the domain "
              f"did then; the α = 0.01 runs are in `benchmarks/results/{run_grid.ADROIT_DEPARTURES}` "
-             "(`python -m benchmarks.run_grid --grid --method tels --tsidm-from <the α = 1 grid's work dir>`, "
-             "which starts stage 2 from the α = 1 run's TS-IDM of the same seed, or trains one where that is "
-             "gone). "
+             "(`python -m benchmarks.run_grid --grid --method tels --tsidm-from <the α = 1 grid's work dir>` "
+             "before `domain=adroit` took the paper's values, which started stage 2 from the α = 1 run's TS-IDM of "
+             "the same seed, or trained one where that was gone). "
              "\"Same TS-IDM\": the α = 0.01 run acted on the α = 1 run's TS-IDM, reused or trained again to the "
              "same final loss; only those seeds enter the paired differences:", "",
              "| set | seed | α = 1: score | proposed / data step | cosine | α = 0.01: score | "

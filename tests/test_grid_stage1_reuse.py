@@ -129,7 +129,11 @@ def test_tsidm_from_method_reuses_another_arms_stage1_only_with_the_same_setting
     run_grid.run_one("tels", "door-human-v1", 1, grid("tels", "door-human-v1", "default", *reuse))
     source = tmp_path / "paper" / "tels_paper" / "door-human-v1" / "seed1" / "tsidm.pt"
     assert _checkpoint_overrides(calls[-1]) == [f"tsidm.checkpoint={source}"]
+    record = json.loads(run_grid.result_path(tmp_path / "default", "tels", "door-human-v1", 1).read_text())
+    assert record["tsidm_reused"]["from"] == str(source)
     assert "--tsidm-from-method=tels_paper" in run_grid.one_command(grid("tels", TASK, "x", *reuse), "tels", TASK, 1)
+    with pytest.raises(SystemExit):
+        grid("tels", TASK, "y", "--tsidm-from-method", "tels_paper")
 
     run_grid.run_one("tels", TASK, 1, grid("tels", TASK, "default", *reuse))
     assert _checkpoint_overrides(calls[-1]) == []
