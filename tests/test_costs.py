@@ -59,6 +59,10 @@ def test_plan_is_printed_and_a_large_epoch_budget_warned(capsys):
     print_plan(recipe_config(["budget=paper"]), 9013)  # a 10k set: 36k steps, no warning
     out, err = capsys.readouterr()
     assert "stage 1 36000 TS-IDM steps" in out and not err
+    print_plan(recipe_config(["domain=adroit", "tsidm.steps=100"]), 9013)  # three β candidates
+    assert "stage 1 300 TS-IDM steps (from tsidm.steps, 3 beta candidates)" in capsys.readouterr().out
+    print_plan(recipe_config(["domain=adroit", "tsidm.checkpoint=/a/tsidm.pt"]), 9013)  # no stage 1 to train
+    assert "stage 1 0 TS-IDM steps (the TS-IDM of tsidm.checkpoint)" in capsys.readouterr().out
 
 
 def test_monitor_fitted_in_the_background_is_the_inline_one(tmp_path):
