@@ -148,6 +148,13 @@ def tels_run_dir(work_dir: Path, task: str, seed: int, method: str = "tels") -> 
     return work_dir / method / task / f"seed{seed}"
 
 
+def reused_tsidm_of(record: dict, method: str) -> bool:
+    """Whether a grid run started stage 2 from the TS-IDM of a ``method`` run: the TS-IDM it reused lies in
+    :func:`tels_run_dir` of that method (``--tsidm-from``, ``--tsidm-from-method``)."""
+    source = (record.get("tsidm_reused") or {}).get("from")
+    return source is not None and Path(source).parent.parts[-3:-2] == (method,)
+
+
 # --------------------------------------------------------------- running
 def one_command(args, method: str, task: str, seed: int) -> list[str]:
     """The single-run command that reproduces (method, task, seed) with this invocation's budget
@@ -476,8 +483,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
     adroit_tels = [r for t in tasks if is_adroit(t) for r in found[t].get("tels", [])]
     if adroit_tels and (results_dir / ADROIT_DEPARTURES).is_dir():
-        reused = sum(Path((r.get("tsidm_reused") or {}).get("from", "")).parent.parts[-3:-2] == ("tels_paper",)
-                     for r in adroit_tels)
+        reused = sum(reused_tsidm_of(r, "tels_paper") for r in adroit_tels)
         lines += ["", f"Adroit's TELS column holds runs of `domain=adroit` as it stands, the paper's values for other "
                   f"tasks (β selected, Eq. 9, α = 0.01): {reused} of its {len(adroit_tels)} runs started stage 2 from "
                   "the TS-IDM of the same seed's paper's-reading run (`--tsidm-from-method tels_paper`; the same "

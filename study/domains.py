@@ -484,12 +484,6 @@ def _wins_broadly(differences: dict[str, list[float]]) -> bool:
             and 2 * sum(d > 0 for d in seeds) > len(seeds))
 
 
-def _reused_from(record: dict, method: str) -> bool:
-    """Whether a run started stage 2 from a TS-IDM that a ``method`` run of a grid trained."""
-    source = tsidm_source(record)
-    return source is not None and Path(source).parent.parts[-3:-2] == (method,)
-
-
 def _adroit_default_reading(by_set: list[tuple]) -> str:
     """How the paper's reading fared against MuJoCo's departures, and whether the default's runs (the paper's
     values since) repeat the paper's reading's scores on the TS-IDMs they reused."""
@@ -502,9 +496,9 @@ def _adroit_default_reading(by_set: list[tuple]) -> str:
                           "wins broadly) `domain=adroit` should keep them.")
     reading += ("The departures do not win broadly, so by the study's rule (the paper's value unless a change wins "
                 "broadly) `domain=adroit` takes the paper's values.")
-    reused = [(r, paper[r["seed"]]) for task in ADROIT_TASKS
-              for paper in [{p["seed"]: p for p in runs("tels_paper", task)}]
-              for r in runs("tels", task) if _reused_from(r, "tels_paper") and r["seed"] in paper]
+    reused = [(r, paper[r["seed"]]) for task, _, paper_runs, _ in by_set
+              for paper in [{p["seed"]: p for p in paper_runs}]
+              for r in runs("tels", task) if run_grid.reused_tsidm_of(r, "tels_paper") and r["seed"] in paper]
     if reused:
         same = sum(scores([r])[0] == scores([p])[0] for r, p in reused)
         reading += (f" {len(reused)} of its runs, in the TELS (default) column above, started stage 2 from the "

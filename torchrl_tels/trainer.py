@@ -141,10 +141,9 @@ def print_plan(cfg, n_transitions: int) -> None:
     """Says, before anything trains, how long each stage will run; warns when an epoch budget on a large set
     means a stage 1 of more than ``tsidm.warn_steps`` steps (Table 10's 1000 epochs were set for 10k sets)."""
     stage1 = 0 if cfg.tsidm.checkpoint else tsidm_steps(cfg, n_transitions)
-    candidates = len(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else 1
+    candidates = len(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" and not cfg.tsidm.checkpoint else 1
     how = ("the TS-IDM of tsidm.checkpoint" if cfg.tsidm.checkpoint else "from tsidm.steps" if cfg.tsidm.steps
            else f"{cfg.tsidm.epochs} epochs of {n_transitions} transitions")
-    candidates = 1 if cfg.tsidm.checkpoint else candidates
     print(f"plan: stage 1 {stage1 * candidates} TS-IDM steps ({how}"
           + (f", {candidates} beta candidates" if candidates > 1 else "") + f"), stage 2 {cfg.policy.steps} policy "
           f"steps, an evaluation of {cfg.eval.episodes} episodes every {cfg.eval.interval} steps; batch "
