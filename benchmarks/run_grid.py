@@ -1180,6 +1180,8 @@ def main(argv=None) -> int:
                 failed.append((method, task, seed))
     if args.table:
         print(f"wrote {render_table(args.results_dir, tuple(args.longer))}")
+        for folder in args.longer:  # the table above links each longer grid's own TABLE.md, so it stays current
+            print(f"wrote {render_table(folder)}")
     if failed:
         print(f"{len(failed)} run(s) failed: {failed}", file=sys.stderr)
         return 1

@@ -249,3 +249,16 @@ def test_a_longest_budget_keeps_protocols_and_hyperparameters_apart(grids, capsy
     text = run_grid.render_table(short, (longer,)).read_text()
     assert _row(text, LONGEST, task, "IQL")[3] == "20k (**still falling**); **hyperparameters differ: lr**"
     assert "IQL at 20k steps, still falling on 4 of 4, **hyperparameters differ** |" in text
+
+
+def test_table_command_renews_the_longer_grids_own_tables_it_links(grids):
+    short, longer = grids
+    (longer / "TABLE.md").write_text("a stale table\n")
+    assert run_grid.main(["--table", "--results-dir", str(short), "--longer", str(longer)]) == 0
+    linked = re.findall(r"\]\(([^)]*long20k/TABLE\.md)\)", (short / "TABLE.md").read_text())
+    assert linked, "the grid's table links the longer grid's own table"
+    own = (longer / "TABLE.md").read_text()
+    # its first row, BC on the first task: per seed the mean of the 10 evaluations, 2e-4 · 11,000 = 2.2 and 1.0
+    row = next(line for line in own.splitlines() if line.startswith(f"| {TASKS[0]} | "))
+    bc = [cell.strip() for cell in row.strip("|").split("|")][2]
+    assert bc.startswith("**1.6** ± 0.6 (n=2)"), bc
