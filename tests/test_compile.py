@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from torch._dynamo.utils import counters
 
 from torchrl_tels.compile import capturable_adam
 from torchrl_tels.config import validate_config
@@ -60,13 +61,21 @@ def assert_same_parameters(eager, compiled, atol, rtol=1e-3):
     assert moved > 0
 
 
+def compiled_graphs() -> int:
+    return counters["stats"]["unique_graphs"]
+
+
 def run_stage1(mode, data, device):
     eager_loss, eager_step = stage1(recipe_config([*SMALL, f"device={device}"]), data, device)
     loss, step = stage1(recipe_config([*SMALL, f"device={device}", *MODES[mode]]), data, device)
     initial = TensorDict.from_module(eager_loss).clone()
-    for batch in batches(data, device):
+    for i, batch in enumerate(batches(data, device)):
         expected, got = eager_step(batch), step(batch)
         torch.testing.assert_close(got["loss_dyn"], expected["loss_dyn"], rtol=1e-3, atol=1e-5)
+        if i == 0:
+            after_first_step = compiled_graphs()
+    # The first step compiled the loss once and for all: no later step recompiles it.
+    assert compiled_graphs() == after_first_step
     # Training moved the weights, and the compiled step moved them to the same place.
     change = TensorDict.from_module(eager_loss) - initial
     assert max(leaf.abs().max().item() for leaf in change.values(True, True)) > 1e-3
@@ -85,6 +94,9 @@ def run_stage2(mode, data, device):
     for step, batch in enumerate(batch_list):
         eager.update(batch, step)
         compiled.update(batch, step)
+        if step == 0:
+            after_first_step = compiled_graphs()
+    assert compiled_graphs() == after_first_step
     compiled.check_finite()
     assert_same_parameters(eager.value_loss, compiled.value_loss, atol=1e-4)
     assert_same_parameters(eager.guide_loss, compiled.guide_loss, atol=1e-4)

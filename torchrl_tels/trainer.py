@@ -119,6 +119,10 @@ def make_train_step(loss_module, optim: torch.optim.Optimizer, amp=contextlib.nu
     AOTAutograd) and leaves the optimizer its fused kernel: compiling the whole step instead breaks its
     graph at the backward and at the optimizer, and stage 2's two steps then share compiled frames
     whose guard checks cost more per step than compiling saves (BENCHMARKS.md, "Compiled train steps")."""
+    if compile:
+        # torchrl losses build their in_keys on first read; built inside the first traced call, they would
+        # fail that graph's guard at the second call and compile the loss a second time.
+        getattr(loss_module, "in_keys", None)
     forward = torch.compile(loss_module, mode=mode) if compile else loss_module
 
     def train_step(batch: TensorDictBase) -> TensorDictBase:
