@@ -21,10 +21,18 @@ def hopper_arrays():
 
 
 def pytest_configure(config):
-    # One torch thread per xdist worker: the workers already fill the cores, and torch's default
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if not worker:
+        return
+    # Each xdist worker runs on its own share of the CPUs, so the recipe processes it starts see only that
+    # share: their threads=auto and monitor.background=auto then keep to it instead of starting a second
+    # thread or a background monitor process on a core another worker is using.
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if hasattr(os, "sched_setaffinity") and workers <= len(cpus := sorted(os.sched_getaffinity(0))):
+        os.sched_setaffinity(0, cpus[int(worker.removeprefix("gw")) % workers::workers])
+    # One torch thread per worker: the workers already fill the cores, and torch's default
     # threads thrash when another process is busy.
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        torch.set_num_threads(1)
+    torch.set_num_threads(1)
 
 
 @pytest.fixture

@@ -39,7 +39,7 @@ def test_cuda_refused_without_a_gpu():
 
 
 def test_thread_setting():
-    assert resolve_threads("auto") == max(1, (os.cpu_count() or 1) // 2)
+    assert resolve_threads("auto") == max(1, len(os.sched_getaffinity(0)) // 2)  # the CPUs this process may use
     assert resolve_threads(None) == resolve_threads("auto")
     assert resolve_threads(3) == 3
 
