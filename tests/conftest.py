@@ -44,6 +44,16 @@ def driver(tmp_path) -> Path:
 
 
 @pytest.fixture(autouse=True)
+def _threads():
+    """Each test ends on the thread count it started with. A torchrl batched env raises torch's thread count
+    process-wide when it closes (by its number of workers, up to the count at torchrl's import): that left an
+    xdist worker on two threads on its one core for every later test, many times slower."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
     np.random.seed(0)
