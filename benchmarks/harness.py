@@ -92,6 +92,18 @@ def invocation() -> str:
     return command_line([sys.executable, *head, *sys.argv[1:]])
 
 
+def code_version() -> dict[str, Any]:
+    """The commit the code of this checkout is at, and whether tracked files differ from it: part of a
+    result's record, so that a run can be traced to the code that made it."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+    except (OSError, subprocess.CalledProcessError):
+        return {"commit": None, "dirty": None}
+
+
 # ---------------------------------------------------------------- running
 def recipe_config(overrides: Sequence[str]):
     """The recipe's configuration as ``recipes/tels_offline.py`` composes it, with hydra ``overrides``."""

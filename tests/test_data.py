@@ -42,6 +42,11 @@ TABLE1_NAMES = [
     "hopper-medium-replay-v2-10k",
     "halfcheetah-medium-v2-10k",
     "walker2d-medium-v2-10k",
+    "hopper-medium-expert-v2-10k",
+    "walker2d-medium-replay-v2-10k",
+    "walker2d-medium-expert-v2-10k",
+    "halfcheetah-medium-replay-v2-10k",
+    "halfcheetah-medium-expert-v2-10k",
     "antmaze-umaze-v0-10k",
     "antmaze-umaze-diverse-v0-10k",
 ]

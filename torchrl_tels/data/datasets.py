@@ -23,7 +23,7 @@ Sources understood by :func:`load_dataset`:
   a ``.npy`` holding a pickled dict of those arrays (how TSRL ships its small
   samples), unpickled without calling anything but NumPy's array rebuilders;
 * an in-memory mapping with the same keys;
-* a dataset shipped inside the package: the five 10k sets of the paper's
+* a dataset shipped inside the package: the eleven 10k sets of the paper's
   Table 1 (:data:`EMBEDDED_DATASETS`; ``"embedded"``/``"default"`` name
   ``"hopper-medium-v2-10k"``);
 * a name of a file in the workplace's shared dataset folder (see
@@ -91,6 +91,11 @@ EMBEDDED_DATASETS: tuple[str, ...] = (
     "hopper-medium-replay-v2-10k",
     "halfcheetah-medium-v2-10k",
     "walker2d-medium-v2-10k",
+    "hopper-medium-expert-v2-10k",
+    "walker2d-medium-replay-v2-10k",
+    "walker2d-medium-expert-v2-10k",
+    "halfcheetah-medium-replay-v2-10k",
+    "halfcheetah-medium-expert-v2-10k",
     "antmaze-umaze-v0-10k",
     "antmaze-umaze-diverse-v0-10k",
     "door-human-v1",
