@@ -7,6 +7,7 @@ import pytest
 
 from torchrl_tels.data import load_dataset
 from torchrl_tels.envs import get_task, make_eval_env, normalized_score
+from torchrl_tels.envs.robotics import maze_files_removed
 
 pytest.importorskip("gymnasium_robotics")
 
@@ -62,7 +63,8 @@ def test_minari_antmaze_id_loads_from_a_dataset_recorded_in_the_real_env(tmp_pat
     assert rollout["observation"].shape == (5, data["observation"].shape[-1])
     # The dataset's flattening is the eval env's (FlattenObservation): the recording's first observation,
     # rebuilt from the same seeded reset and flattened as the eval env flattens.
-    recorder = gym.make("AntMaze_UMaze-v4")
+    with maze_files_removed():
+        recorder = gym.make("AntMaze_UMaze-v4")
     first, _ = recorder.reset(seed=2)
     flat = gym.spaces.flatten(recorder.observation_space, first)
     np.testing.assert_allclose(data["observation"][0].numpy(), flat, rtol=1e-5, atol=1e-6)

@@ -59,7 +59,7 @@ def test_antmaze_registration_needs_no_robotics(monkeypatch):
 
     # Without Gymnasium-Robotics, building the env says how to install it.
     monkeypatch.setitem(sys.modules, "gymnasium_robotics", None)
-    with pytest.raises(ImportError, match=r"torchrl-tels\[maze\]"):
+    with pytest.raises(ImportError, match=r"torchrl-tels\[robotics\]"):
         antmaze.AntMazeUMazeD4RLEnv()
 
 

@@ -8,7 +8,7 @@ would expect (``ValueError``, ``RuntimeError``, ...).
 from __future__ import annotations
 
 __all__ = [
-    "CheckpointError", "ConfigError", "DatasetError", "MonitorError", "NonFiniteLossError", "OutKeysError", "TaskError",
+    "CheckpointError", "ConfigError", "DatasetError", "MissingDependencyError", "MonitorError", "NonFiniteLossError", "OutKeysError", "TaskError",
     "TelsError",
 ]
 
@@ -31,6 +31,10 @@ class DatasetError(TelsError, ValueError):
 
 class TaskError(TelsError, ValueError):
     """An unknown task, or an evaluation environment that cannot be built."""
+
+
+class MissingDependencyError(TelsError, ImportError):
+    """An optional dependency a feature needs is not installed; the message gives the pip line."""
 
 
 class CheckpointError(TelsError, RuntimeError):

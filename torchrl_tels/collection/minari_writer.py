@@ -16,6 +16,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from torchrl_tels.envs.robotics import maze_files_removed
+
 __all__ = ["collect_minari_dataset"]
 
 #: A policy maps one (numpy, possibly dict) observation to one action.
@@ -142,7 +144,8 @@ def collect_minari_dataset(
         raise ValueError(f"n_episodes/n_steps must be positive, got {limit}.")
     prepare_minari_dataset_id(dataset_id, action_noise, overwrite)
 
-    env = gym.make(env_id, **dict(env_kwargs or {}))
+    with maze_files_removed():  # a Gymnasium-Robotics maze would leave its model file behind
+        env = gym.make(env_id, **dict(env_kwargs or {}))
     action_space = env.action_space
     if action_noise > 0 and not isinstance(action_space, gym.spaces.Box):
         env.close()

@@ -3,12 +3,14 @@
 from torchrl_tels.data.datasets import (
     D4RL_REQUIRED_KEYS,
     EMBEDDED_DATASET,
+    COLLECTED_DATASETS,
     EMBEDDED_DATASETS,
     DatasetError,
     embedded_dataset_path,
     load_dataset,
     minari_dataset_to_tensordict,
     shared_datasets_dir,
+    user_datasets_dir,
 )
 from torchrl_tels.data.replay import make_offline_replay_buffer
 from torchrl_tels.data.subsets import (
@@ -26,6 +28,7 @@ from torchrl_tels.data.subsets import (
 __all__ = [
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
+    "COLLECTED_DATASETS",
     "EMBEDDED_DATASETS",
     "PAPER_SUBSET_SIZES",
     "SUBSET_MODES",
@@ -37,6 +40,7 @@ __all__ = [
     "minari_dataset_to_tensordict",
     "points_in_boxes",
     "shared_datasets_dir",
+    "user_datasets_dir",
     "split_trajectories",
     "subsample_transitions",
     "subset_dataset",

@@ -61,6 +61,8 @@ __all__ = [
     "D4RL_REQUIRED_KEYS",
     "EMBEDDED_DATASET",
     "EMBEDDED_DATASETS",
+    "COLLECTED_DATASETS",
+    "user_datasets_dir",
     "load_dataset",
     "minari_dataset_to_tensordict",
     "embedded_dataset_path",
@@ -106,10 +108,19 @@ EMBEDDED_DATASETS: tuple[str, ...] = (
 )
 _EMBEDDED_ALIASES = ("embedded", "default")
 
+#: Sets too large to ship, made on the user's machine: name -> the command that makes it (run from the
+#: repository root; it writes ``<user_datasets_dir()>/<name>.npz``).
+COLLECTED_DATASETS: dict[str, str] = {
+    f"antmaze-{name}-v2-100k": f"python recipes/collect_antmaze.py {name}"
+    for name in ("medium-play", "medium-diverse", "large-play", "large-diverse")
+}
+#: Environment variable naming the user's dataset folder (default ``~/.cache/torchrl_tels/datasets``).
+USER_DATASETS_ENV = "TORCHRL_TELS_DATA"
+
 #: Environment variable overriding the location of the shared dataset folder.
 SHARED_DATASETS_ENV = "TORCHRL_TELS_SHARED_DATASETS"
 #: Sub-folders of the shared dataset folder searched for ``<name>.npz``.
-_SHARED_SUBDIRS = ("d4rl-10k",)
+_SHARED_SUBDIRS = ("d4rl-10k", "antmaze")
 
 _FILE_SUFFIXES = (".npz", ".npy", ".hdf5", ".h5")
 
@@ -223,6 +234,26 @@ def recorded_env_id(source: DatasetSource) -> str | None:
     return None
 
 
+def user_datasets_dir() -> Path:
+    """The folder where collectors write, and :func:`load_dataset` finds, the sets of
+    :data:`COLLECTED_DATASETS`: ``$TORCHRL_TELS_DATA``, or ``~/.cache/torchrl_tels/datasets``."""
+    override = os.environ.get(USER_DATASETS_ENV)
+    return Path(override).expanduser() if override else Path.home() / ".cache" / "torchrl_tels" / "datasets"
+
+
+def _collected_dataset(source: str) -> Path:
+    """The file of a :data:`COLLECTED_DATASETS` name: the shared folder's copy, else the user's."""
+    shared = shared_datasets_dir()
+    candidates = [*(shared / subdir / f"{source}.npz" for subdir in _SHARED_SUBDIRS if shared is not None),
+                  user_datasets_dir() / f"{source}.npz"]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise DatasetError(
+        f"{source} is not in {user_datasets_dir()}; make it with: {COLLECTED_DATASETS[source]}"
+    )
+
+
 # --------------------------------------------------------------------------- #
 # Public entry point
 # --------------------------------------------------------------------------- #
@@ -320,6 +351,8 @@ def load_dataset(
         with importlib.resources.as_file(resource) as resource_path:
             return _load_d4rl_file(resource_path, source_name=source)
     looked_at.append(f"embedded datasets {[*EMBEDDED_DATASETS, *_EMBEDDED_ALIASES]}")
+    if source in COLLECTED_DATASETS:
+        return _load_d4rl_file(_collected_dataset(source), source_name=source)
 
     shared = shared_datasets_dir()
     if shared is None:

@@ -13,7 +13,7 @@ Importing this module registers one Gymnasium id per task, ``torchrl_tels/Adroit
 D4RL reward and episode length), and the evaluation tasks on them by D4RL name
 (``door-human-v1``, ``pen-expert-v1``, ... and their ``-10k``-style subsets) and Minari id
 (``D4RL/door/human-v2``, ...), with D4RL's reference returns. gymnasium-robotics is imported only when
-an env is built (the ``maze`` extra installs it).
+an env is built (the ``robotics`` extra installs it).
 
 Success (D4RL's criterion): an episode succeeds when ``info["success"]`` holds on more than 25 of its
 steps (pen: more than 20); :func:`~torchrl_tels.envs.evaluation.episode_success` applies it.
@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
+from torchrl_tels.envs.robotics import import_gymnasium_robotics
 from torchrl_tels.envs.tasks import register_task, Task
 
 __all__ = ["ADROIT_TASKS", "AdroitSpec", "D4RLAdroitReward", "adroit_env_id", "register_adroit"]
@@ -93,8 +94,7 @@ class D4RLAdroitReward(gym.Wrapper):
 
 def make_d4rl_adroit_env(task: str, **kwargs) -> gym.Env:
     """``task``'s gymnasium-robotics env with D4RL's reward; the registration adds D4RL's time limit."""
-    import gymnasium_robotics  # noqa: F401  (registers AdroitHand*-v1)
-
+    import_gymnasium_robotics()  # registers AdroitHand*-v1, or says which extra installs it
     spec = ADROIT_TASKS[task]
     return D4RLAdroitReward(gym.make(spec.base_env_id, max_episode_steps=None, **kwargs).unwrapped, spec.palm_to)
 

@@ -1,52 +1,50 @@
-"""D4RL ``antmaze-umaze`` evaluation environment on Gymnasium-Robotics.
+"""D4RL's AntMaze evaluation environments (umaze, medium, large) on Gymnasium-Robotics.
 
 No stock Gymnasium-Robotics AntMaze reproduces the dynamics D4RL's antmaze
 data was recorded with: Gymnasium's ant model steps at 0.01 s with motors of
 gear 150 and control range ±1, D4RL's at 0.02 s with gear 1 and range ±30.
-:class:`AntMazeUMazeD4RLEnv` runs ``AntMaze_UMaze-v5`` on a patched copy of
-Gymnasium's ``ant.xml`` (see :func:`patched_ant_xml`) so that one step from a
-stored state with a stored action lands on the stored next state (median
-absolute error about 1e-4 per dimension on ``antmaze-umaze-v0``), and speaks
-D4RL's language:
+:class:`AntMazeD4RLEnv` runs Gymnasium-Robotics' ``AntMazeEnv`` on D4RL's
+evaluation maps (:data:`MAZES`) with a patched copy of Gymnasium's ``ant.xml``
+(see :func:`patched_ant_xml`), so that one step from a stored state with a
+stored action lands on the stored next state (median absolute error about
+1e-4 per dimension on ``antmaze-umaze-v0``), and speaks D4RL's language:
 
-* **observation** (29,): torso ``(x, y)`` in D4RL's frame, then
-  Gymnasium-Robotics' 27-dim ``observation`` (``qpos[2:15]``, ``qvel``).
-  D4RL puts the start cell at the origin with rows growing towards +y;
-  Gymnasium-Robotics centres the maze with rows growing towards -y. For the
-  U-maze (symmetric under a row flip) ``xy_d4rl = xy_gym + (4, 4)``.
+* **frame**: a maze cell (row i, col j) of D4RL's map has its centre at
+  ``(4 (j - 1), 4 (i - 1))``: the reset cell at the origin, y growing with the
+  row. Gymnasium-Robotics centres the maze and flips y; with the map's rows
+  reversed the two frames differ by a translation (:attr:`D4RLMaze.xy_offset`).
+* **observation** (29,): torso ``(x, y)`` in D4RL's frame, ``qpos[2:15]``,
+  ``qvel`` (the layout of D4RL's antmaze data).
 * **action** (8,) in ``[-1, 1]``, multiplied by :data:`ACTION_SCALE` (30)
   before it reaches the motors, as in D4RL.
-* **goal**: ``(0, 8) + U(0, 1) + U(0, 0.5)`` per axis in D4RL coordinates,
-  redrawn on every reset (D4RL's ``-v2`` evaluation protocol; ``-v0`` draws it
-  once per environment instance: pass ``goal_per_reset=False``).
-* **start**: the model's initial ``qpos`` (torso at the D4RL origin) plus
+* **goal**: the centre of the map's evaluation goal cell plus
+  ``U(0, 1) + U(0, 0.5)`` per axis, redrawn on every reset (D4RL's ``-v2``
+  protocol; ``-v0`` draws it once per environment: ``goal_per_reset=False``).
+* **start**: the model's initial ``qpos`` (torso at the origin) plus
   ``U(-0.1, 0.1)`` on all 15 position coordinates, ``qvel ~ N(0, 0.1^2)``.
 * **success**: the torso is within :data:`SUCCESS_RADIUS` (0.5) of the goal
   after a step; the step's reward is 1 (else 0) and the episode terminates.
-  ``gym.make(ENV_ID)`` truncates at :data:`MAX_EPISODE_STEPS` (700).
+  The registered ids truncate at D4RL's limit: 700 steps (umaze), 1000
+  (medium, large).
 
 An episode's return is therefore 1 on success and 0 otherwise, and the D4RL
 normalized score (reference returns 0 and 1) is the success rate times 100.
 Evaluate with 50-100 episodes: the dynamics are chaotic.
 
-Importing this module registers, without needing Gymnasium-Robotics:
-
-* the Gymnasium id :data:`ENV_ID` (``"torchrl_tels/AntMazeUMazeD4RL-v0"``);
-  Gymnasium-Robotics is imported only when the environment is built, with an
-  error telling how to install it (``pip install "torchrl-tels[maze]"``);
-* the evaluation tasks of :data:`TASK_NAMES` (``antmaze-umaze-v0`` and its
-  ``-10k`` variants, ...), pointing at :data:`ENV_ID` with reference scores
-  0 and 1 (:func:`register_antmaze_tasks`, replacing earlier registrations).
+Importing this module registers, without needing Gymnasium-Robotics, one
+Gymnasium id per maze (:data:`ENV_IDS`) and the evaluation tasks by D4RL name
+(:data:`TASK_NAMES`; their ``-<n>k`` subsets resolve to them through
+:func:`~torchrl_tels.envs.get_task`). Gymnasium-Robotics is imported when an
+environment is built.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import io
 import os
 import tempfile
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -54,54 +52,130 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from torchrl_tels.envs.robotics import import_gymnasium_robotics, maze_files_removed
 from torchrl_tels.envs.tasks import D4RL_REFERENCE_SCORES, Task, register_task
 
 __all__ = [
     "ACTION_SCALE",
     "ENV_ID",
-    "GOAL_CELL_D4RL",
-    "MAX_EPISODE_STEPS",
+    "ENV_IDS",
+    "MAZES",
     "SUCCESS_RADIUS",
     "TASK_NAMES",
-    "XY_OFFSET",
-    "AntMazeUMazeD4RLEnv",
+    "AntMazeD4RLEnv",
+    "D4RLMaze",
     "import_gymnasium_robotics",
+    "maze_of_task",
     "patched_ant_xml",
     "register_antmaze_env",
     "register_antmaze_tasks",
 ]
 
-#: Gymnasium id of :class:`AntMazeUMazeD4RLEnv`.
-ENV_ID = "torchrl_tels/AntMazeUMazeD4RL-v0"
-#: D4RL's evaluation episode limit for antmaze-umaze.
-MAX_EPISODE_STEPS = 700
 #: D4RL's success radius around the goal (Gymnasium-Robotics uses 0.45).
 SUCCESS_RADIUS = 0.5
 #: Dataset actions in [-1, 1] times this are the motor controls of D4RL's ant.
 ACTION_SCALE = 30.0
-#: ``xy_d4rl = xy_gym + XY_OFFSET`` for the U-maze.
-XY_OFFSET = np.array([4.0, 4.0])
-#: Corner of the goal cell in D4RL coordinates; goals are drawn above it.
-GOAL_CELL_D4RL = np.array([0.0, 8.0])
-#: Dataset names whose evaluation task is this environment.
-TASK_NAMES: tuple[str, ...] = (
-    "antmaze-umaze-v0",
-    "antmaze-umaze-v2",
-    "antmaze-umaze-diverse-v0",
-    "antmaze-umaze-diverse-v2",
-)
+#: D4RL's cell size.
+CELL_SIZE = 4.0
 
-#: D4RL's U-maze, rows reversed into Gymnasium-Robotics' row order (the walls
-#: are symmetric under the flip): reset cell "r" at row 3, goal cell "g" at row 1.
-_UMAZE_MAP = [
-    [1, 1, 1, 1, 1],
-    [1, "g", 0, 0, 1],
-    [1, 1, 1, 0, 1],
-    [1, "r", 0, 0, 1],
-    [1, 1, 1, 1, 1],
-]
-#: Torso start (D4RL origin) in Gymnasium-Robotics coordinates.
-_START_GYM = -XY_OFFSET
+
+@dataclass(frozen=True)
+class D4RLMaze:
+    """One of D4RL's ant mazes: its map in D4RL's row order and its evaluation protocol.
+
+    ``rows`` spell the map: ``1`` a wall, ``0`` a free cell, ``r`` the reset
+    cell, ``g`` a hand-picked goal cell of the data-collection map (the
+    ``play`` sets' goals). ``goal_cell`` is the ``G`` cell of D4RL's
+    evaluation (``_TEST``) map.
+    """
+
+    name: str
+    rows: tuple[str, ...]
+    goal_cell: tuple[int, int]
+    max_episode_steps: int
+
+    @property
+    def walls(self) -> np.ndarray:
+        """(rows, cols) bool, True on a wall."""
+        return np.array([[c == "1" for c in row] for row in self.rows])
+
+    def cell_centre(self, cell) -> np.ndarray:
+        """The centre of cell (row, col) in D4RL's frame."""
+        row, col = cell
+        return CELL_SIZE * np.array([col - 1.0, row - 1.0])
+
+    def cells(self, marker: str | None = None) -> list[tuple[int, int]]:
+        """The free cells (all of them, or those marked ``marker``), row by row."""
+        return [(i, j) for i, row in enumerate(self.rows) for j, c in enumerate(row)
+                if c != "1" and (marker is None or c == marker)]
+
+    @property
+    def xy_offset(self) -> np.ndarray:
+        """``xy_d4rl = xy_gym + xy_offset`` for Gymnasium-Robotics' maze built on the reversed rows."""
+        rows, cols = self.walls.shape
+        return np.array([CELL_SIZE * cols / 2 - 1.5 * CELL_SIZE, CELL_SIZE * rows / 2 - 1.5 * CELL_SIZE])
+
+    def gym_map(self) -> list[list[int]]:
+        """The map as Gymnasium-Robotics takes it: rows reversed, 1 for a wall, 0 elsewhere."""
+        return [[int(c == "1") for c in row] for row in reversed(self.rows)]
+
+
+#: D4RL's maze maps (``d4rl/locomotion/maze_env.py``: ``U_MAZE``, ``BIG_MAZE``,
+#: ``HARDEST_MAZE``; the walls of their ``_TEST`` maps are the same) and episode limits.
+MAZES: dict[str, D4RLMaze] = {
+    "umaze": D4RLMaze("umaze", ("11111", "1r001", "11101", "1g001", "11111"), (3, 1), 700),
+    "medium": D4RLMaze("medium", (
+        "11111111",
+        "1r011001",
+        "100100g1",
+        "11000111",
+        "10010001",
+        "1g100101",
+        "10001g01",
+        "11111111",
+    ), (6, 6), 1000),
+    "large": D4RLMaze("large", (
+        "111111111111",
+        "1r0001g00001",
+        "101101010101",
+        "10000g0100g1",
+        "101111011101",
+        "10g101000001",
+        "110101010111",
+        "1001g0g10g01",
+        "111111111111",
+    ), (7, 9), 1000),
+}
+#: Gymnasium id of each maze's :class:`AntMazeD4RLEnv`.
+ENV_IDS: dict[str, str] = {
+    "umaze": "torchrl_tels/AntMazeUMazeD4RL-v0",
+    "medium": "torchrl_tels/AntMazeMediumD4RL-v0",
+    "large": "torchrl_tels/AntMazeLargeD4RL-v0",
+}
+#: The umaze environment's id.
+ENV_ID = ENV_IDS["umaze"]
+#: D4RL dataset names -> the maze their evaluation runs in.
+TASK_MAZES: dict[str, str] = {
+    "antmaze-umaze-v0": "umaze",
+    "antmaze-umaze-v2": "umaze",
+    "antmaze-umaze-diverse-v0": "umaze",
+    "antmaze-umaze-diverse-v2": "umaze",
+    "antmaze-medium-play-v2": "medium",
+    "antmaze-medium-diverse-v2": "medium",
+    "antmaze-large-play-v2": "large",
+    "antmaze-large-diverse-v2": "large",
+}
+#: Dataset names whose evaluation task is one of these environments.
+TASK_NAMES: tuple[str, ...] = tuple(TASK_MAZES)
+
+
+def maze_of_task(name: str) -> D4RLMaze:
+    """The maze a D4RL antmaze name (or its ``-<n>k`` subset) evaluates in."""
+    base = name.rsplit("-", 1)[0] if name.rsplit("-", 1)[-1].endswith("k") else name
+    if base not in TASK_MAZES:
+        raise KeyError(f"{name!r} is not a D4RL antmaze task; known: {list(TASK_NAMES)}.")
+    return MAZES[TASK_MAZES[base]]
+
 
 # Patched ant model values (D4RL's ant, measured against antmaze-umaze-v0).
 _TIMESTEP = "0.02"
@@ -112,31 +186,6 @@ _GEOM_SOLIMP = ".8 .8 .01"
 _GEOM_MARGIN = "0.005"
 _CTRL_RANGE = f"-{ACTION_SCALE:g} {ACTION_SCALE:g}"
 _GEAR = "1"
-
-_INSTALL_HINT = (
-    'pip install "torchrl-tels[maze]"  (or: pip install gymnasium-robotics==1.4.2)'
-)
-
-
-def import_gymnasium_robotics():
-    """Import and return :mod:`gymnasium_robotics`, or explain how to install it.
-
-    The package prints a notification about its Adroit environments on
-    import; it is silenced here (it does not concern the maze environments).
-
-    Raises:
-        ImportError: Gymnasium-Robotics is not installed; the message gives the
-            pip line of the ``maze`` extra.
-    """
-    try:
-        with contextlib.redirect_stderr(io.StringIO()):
-            import gymnasium_robotics
-    except ImportError as err:
-        raise ImportError(
-            "The maze environments (AntMaze, PointMaze) need Gymnasium-Robotics, "
-            f"which is not installed: {_INSTALL_HINT}"
-        ) from err
-    return gymnasium_robotics
 
 
 def _cache_dir() -> Path:
@@ -193,13 +242,14 @@ def patched_ant_xml() -> str:
     return str(path)
 
 
-class AntMazeUMazeD4RLEnv(gym.Env):
-    """``antmaze-umaze`` with D4RL's ant, observations and episode protocol.
+class AntMazeD4RLEnv(gym.Env):
+    """One of D4RL's ant mazes with D4RL's ant, observations and episode protocol.
 
     See the module docstring for the details. Build it with
-    ``gym.make(ENV_ID)`` (adds the 700-step limit) or directly.
+    ``gym.make(ENV_IDS[maze])`` (adds the episode limit) or directly.
 
     Args:
+        maze: a key of :data:`MAZES` (``"umaze"``, ``"medium"``, ``"large"``).
         render_mode: forwarded to Gymnasium-Robotics (``"rgb_array"``, ...).
         goal_per_reset: draw a new goal on every reset (D4RL ``-v2``); if
             false, the goal drawn on the first reset is kept (D4RL ``-v0``).
@@ -207,40 +257,47 @@ class AntMazeUMazeD4RLEnv(gym.Env):
             position coordinates and std of the normal noise on the start
             velocities.
 
-    Reset ``options``: ``{"goal": (x, y)}`` sets the goal in D4RL coordinates.
+    Reset ``options``: ``{"goal": (x, y)}`` sets the goal and
+    ``{"start": (x, y)}`` the torso's start before noise, both in D4RL's frame.
 
     Raises:
         ImportError: Gymnasium-Robotics is not installed.
+        ValueError: an unknown maze.
     """
 
     metadata = {"render_modes": ["human", "rgb_array", "depth_array"], "render_fps": 10}
 
     def __init__(
         self,
+        maze: str = "umaze",
         render_mode: str | None = None,
         *,
         goal_per_reset: bool = True,
         reset_noise_scale: float = 0.1,
     ) -> None:
         super().__init__()
+        if maze not in MAZES:
+            raise ValueError(f"unknown maze {maze!r}; expected one of {list(MAZES)}.")
         import_gymnasium_robotics()
         from gymnasium_robotics.envs.maze.ant_maze_v5 import AntMazeEnv
 
+        self.maze = MAZES[maze]
         self.render_mode = render_mode
         self.goal_per_reset = goal_per_reset
         self.reset_noise_scale = float(reset_noise_scale)
-        # Gymnasium-Robotics writes a temporary model file per build, next to
-        # the system temporary folder; nothing to clean up here.
-        self._maze_env = AntMazeEnv(
-            render_mode=render_mode,
-            maze_map=_UMAZE_MAP,
-            reward_type="sparse",
-            continuing_task=True,
-            reset_target=False,
-            xml_file=patched_ant_xml(),
-            include_cfrc_ext_in_observation=False,
-            frame_skip=5,
-        )
+        self._offset = self.maze.xy_offset
+        ant_xml = patched_ant_xml()  # before the private temp folder: it must outlive the build
+        with maze_files_removed():
+            self._maze_env = AntMazeEnv(
+                render_mode=render_mode,
+                maze_map=self.maze.gym_map(),
+                reward_type="sparse",
+                continuing_task=True,
+                reset_target=False,
+                xml_file=ant_xml,
+                include_cfrc_ext_in_observation=False,
+                frame_skip=5,
+            )
         self._ant = self._maze_env.ant_env
         model = self._ant.model
         if model.nq != 15 or model.nv != 14 or model.nu != 8:
@@ -259,7 +316,7 @@ class AntMazeUMazeD4RLEnv(gym.Env):
 
     @property
     def model(self):
-        """The MuJoCo model (patched ant in the U-maze)."""
+        """The MuJoCo model (patched ant in the maze)."""
         return self._ant.model
 
     @property
@@ -273,20 +330,20 @@ class AntMazeUMazeD4RLEnv(gym.Env):
         return None if self._goal is None else self._goal.copy()
 
     def sample_goal(self) -> np.ndarray:
-        """Draw a goal as D4RL does: ``(0, 8) + U(0, 1) + U(0, 0.5)`` per axis."""
+        """Draw a goal as D4RL's evaluation does: the goal cell's centre plus ``U(0, 1) + U(0, 0.5)`` per axis."""
         rng = self.np_random
         noise = rng.uniform(0.0, 1.0, size=2) + rng.uniform(0.0, 0.5, size=2)
-        return np.maximum(GOAL_CELL_D4RL + noise, 0.0)
+        return self.maze.cell_centre(self.maze.goal_cell) + noise
 
     def _set_goal(self, goal: np.ndarray) -> None:
         self._goal = np.asarray(goal, dtype=np.float64).reshape(2).copy()
         # Keep Gymnasium-Robotics' goal and target marker (rendering) in sync.
-        self._maze_env.goal = self._goal - XY_OFFSET
+        self._maze_env.goal = self._goal - self._offset
         self._maze_env.update_target_site_pos()
 
     def _observation(self) -> np.ndarray:
         qpos, qvel = self._ant.data.qpos, self._ant.data.qvel
-        xy = qpos[:2] + XY_OFFSET
+        xy = qpos[:2] + self._offset
         return np.concatenate([xy, qpos[2:], qvel]).astype(np.float32)
 
     def set_state_from_observation(self, observation: Any) -> None:
@@ -301,7 +358,7 @@ class AntMazeUMazeD4RLEnv(gym.Env):
                 f"expected a 29-dim D4RL antmaze observation, got {observation.shape}."
             )
         qpos = observation[:15].copy()
-        qpos[:2] -= XY_OFFSET
+        qpos[:2] -= self._offset
         self._ant.set_state(qpos, observation[15:])
 
     # ------------------------------------------------------------------ #
@@ -312,10 +369,11 @@ class AntMazeUMazeD4RLEnv(gym.Env):
             self._set_goal(options["goal"])
         elif self._goal is None or self.goal_per_reset:
             self._set_goal(self.sample_goal())
+        start = np.zeros(2) if options.get("start") is None else np.asarray(options["start"], np.float64)
         self._ant.reset()  # clears the MuJoCo data; the state is set below
         rng, scale = self.np_random, self.reset_noise_scale
         qpos = self._ant.init_qpos.copy()
-        qpos[:2] = _START_GYM
+        qpos[:2] = start - self._offset
         qpos = qpos + rng.uniform(-scale, scale, size=qpos.shape)
         qvel = self._ant.init_qvel + scale * rng.standard_normal(self._ant.model.nv)
         self._ant.set_state(qpos, qvel)
@@ -347,26 +405,32 @@ class AntMazeUMazeD4RLEnv(gym.Env):
         super().close()
 
 
-def register_antmaze_env() -> None:
-    """Register :data:`ENV_ID` with Gymnasium (no-op if already registered).
+#: The umaze environment under its earlier name.
+AntMazeUMazeD4RLEnv = AntMazeD4RLEnv
 
-    Needs only Gymnasium: Gymnasium-Robotics is imported when the environment
+
+def register_antmaze_env() -> None:
+    """Register each maze's id of :data:`ENV_IDS` with Gymnasium (no-op where registered).
+
+    Needs only Gymnasium: Gymnasium-Robotics is imported when an environment
     is built.
     """
-    if ENV_ID not in gym.registry:
-        gym.register(
-            id=ENV_ID,
-            entry_point=f"{__name__}:AntMazeUMazeD4RLEnv",
-            max_episode_steps=MAX_EPISODE_STEPS,
-        )
+    for maze, env_id in ENV_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(
+                id=env_id,
+                entry_point=f"{__name__}:AntMazeD4RLEnv",
+                kwargs={"maze": maze},
+                max_episode_steps=MAZES[maze].max_episode_steps,
+            )
 
 
 def register_antmaze_tasks() -> list[Task]:
-    """(Re-)register the evaluation tasks of :data:`TASK_NAMES` on :data:`ENV_ID`.
+    """(Re-)register the evaluation tasks of :data:`TASK_NAMES` on their maze's env.
 
     Reference scores are D4RL's antmaze ones (0 and 1), so the normalized
     score is the success rate times 100. ``-<n>k`` variants
-    (``"antmaze-umaze-v0-10k"``) resolve to these tasks through
+    (``"antmaze-medium-play-v2-100k"``) resolve to these tasks through
     :func:`~torchrl_tels.envs.get_task`. Replaces earlier registrations of the
     same names.
     """
@@ -375,16 +439,16 @@ def register_antmaze_tasks() -> list[Task]:
         register_task(
             Task(
                 name,
-                ENV_ID,
+                ENV_IDS[maze],
                 ref_min,
                 ref_max,
                 observation_dim=29,
                 action_dim=8,
-                max_episode_steps=MAX_EPISODE_STEPS,
+                max_episode_steps=MAZES[maze].max_episode_steps,
             ),
             overwrite=True,
         )
-        for name in TASK_NAMES
+        for name, maze in TASK_MAZES.items()
     ]
 
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from torchrl_tels.envs.antmaze import import_gymnasium_robotics
+from torchrl_tels.envs.robotics import import_gymnasium_robotics, maze_files_removed
 from torchrl_tels.envs.pointmaze import FIXED_TASK_CELLS
 from torchrl_tels.envs.tasks import register_task, Task
 
@@ -55,7 +55,8 @@ def make_fixed_antmaze_env(maze: str, **kwargs: Any) -> gym.Env:
     maze_map[start_row][start_col], maze_map[goal_row][goal_col] = maps.RESET, maps.GOAL
     kwargs.setdefault("continuing_task", False)
     # The registered id adds the step limit: start from the bare environment.
-    env = gym.make(_BASE_ENV[maze], maze_map=maze_map, **kwargs).unwrapped
+    with maze_files_removed():
+        env = gym.make(_BASE_ENV[maze], maze_map=maze_map, **kwargs).unwrapped
     return gym.wrappers.FlattenObservation(env)
 
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from torchrl_tels.envs.antmaze import import_gymnasium_robotics
+from torchrl_tels.envs.robotics import import_gymnasium_robotics, maze_files_removed
 from torchrl_tels.envs.tasks import register_task, Task
 
 __all__ = [
@@ -103,7 +103,8 @@ def make_pointmaze_env(
         ImportError: Gymnasium-Robotics is not installed.
     """
     import_gymnasium_robotics()
-    env = gym.make(MAZE_ENV_IDS[check_maze(maze)], **kwargs)
+    with maze_files_removed():
+        env = gym.make(MAZE_ENV_IDS[check_maze(maze)], **kwargs)
     if flatten:
         keys = tuple(env.observation_space.spaces)
         if keys != POINTMAZE_OBSERVATION_KEYS:  # pragma: no cover - gymnasium sorts
@@ -116,16 +117,17 @@ def _make_flat_eval_env(maze: str, **kwargs: Any) -> gym.Env:
     kwargs.setdefault("continuing_task", False)
     # The registered id adds the step limit: start from the bare environment.
     import_gymnasium_robotics()
-    env = gym.make(MAZE_ENV_IDS[check_maze(maze)], **kwargs).unwrapped
+    with maze_files_removed():
+        env = gym.make(MAZE_ENV_IDS[check_maze(maze)], **kwargs).unwrapped
     return gym.wrappers.FlattenObservation(env)
 
 
 def _make_fixed_eval_env(maze: str, **kwargs: Any) -> gym.Env:
     # Gymnasium-Robotics draws the reset position in the "r" cell and the goal
     # in the "g" cell (each with its usual +-0.25 cell jitter).
+    import_gymnasium_robotics()
     from gymnasium_robotics.envs.maze.maps import GOAL, RESET
 
-    import_gymnasium_robotics()
     start, goal = FIXED_TASK_CELLS[check_maze(maze)]
     maze_map = [list(row) for row in _maze_map(maze)]
     maze_map[start[0]][start[1]] = RESET
