@@ -79,6 +79,13 @@ HELD_OUT_TASKS = (
     "halfcheetah-medium-replay-v2-10k",
     "halfcheetah-medium-expert-v2-10k",
 )
+#: Table 1's AntMaze medium and large rows (``load_dataset`` finds them in a data folder)
+ANTMAZE_100K_TASKS = (
+    "antmaze-medium-diverse-v2-100k",
+    "antmaze-medium-play-v2-100k",
+    "antmaze-large-diverse-v2-100k",
+    "antmaze-large-play-v2-100k",
+)
 SEEDS = (0, 1, 2)
 LABELS = {"bc": "BC", "td3bc": "TD3+BC", "iql": "IQL", "iql_latent": "IQL (TS-IDM latent)", "tels": "TELS",
           "tels_paper": "TELS (paper's reading)", "tels_ae": "φ/ψ + h_inv", "tels_dyn": "↑ + h_fwd, h_rvs", "tels_ode": "↑ + ℓ_ode",
@@ -109,6 +116,15 @@ PAPER_TABLE1 = {
                              "tsrl": (76.1, 15.6), "tels": (88.7, 7.7)},
     "antmaze-umaze-diverse-v0-10k": {"bc": (24.1, 22.2), "td3bc": (16.27, 16.4), "iql": (34.6, 18.5),
                                      "tsrl": (52.2, 22.1), "tels": (60.9, 16.9)},
+    # Table 1's AntMaze medium and large rows, on 100k-transition samples of D4RL's 1M sets
+    "antmaze-medium-diverse-v2-100k": {"bc": (0.0, None), "td3bc": (0.0, None), "iql": (4.8, 5.9),
+                                       "tsrl": (0.0, None), "tels": (47.2, 17.3)},
+    "antmaze-medium-play-v2-100k": {"bc": (0.0, None), "td3bc": (0.0, None), "iql": (12.5, 5.4),
+                                    "tsrl": (0.0, None), "tels": (62.9, 17.8)},
+    "antmaze-large-diverse-v2-100k": {"bc": (0.0, None), "td3bc": (0.0, None), "iql": (3.6, 4.1),
+                                      "tsrl": (0.0, None), "tels": (39.8, 14.1)},
+    "antmaze-large-play-v2-100k": {"bc": (0.0, None), "td3bc": (0.0, None), "iql": (3.5, 4.1),
+                                   "tsrl": (0.0, None), "tels": (47.3, 13.1)},
     # Table 1 (door-human, 5k transitions: BC and IQL without a std there) and Table 6 (10k of expert data)
     "door-human-v1": {"bc": (0.5, None), "td3bc": (0.5, None), "iql": (4.3, None), "tsrl": (0.5, 0.3),
                       "tels": (11.8, 1.6)},

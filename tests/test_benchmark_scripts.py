@@ -16,6 +16,7 @@ import runpy
 import subprocess
 import sys
 import traceback
+import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -219,3 +220,43 @@ def test_monitor_table_is_generated_from_the_jsons_and_a_cell_recomputes():
     header = next(line for line in text.splitlines() if line.startswith("| shifted set | tsym_inconsistency"))
     column = [c.strip() for c in header.strip("|").split("|")].index("nearest_state")
     assert cells[column] == f"{statistics.mean(values):.3f} ({min(values):.2f}–{max(values):.2f})"
+
+
+def test_report_check_fails_when_the_figure_is_stale(tmp_path, monkeypatch, capsys):
+    """The overview figure carries a digest of the numbers it plots: one changed number, or a missing PNG,
+    fails ``--check``; redrawing makes it current again."""
+    from study import overview, report
+
+    rows = overview.rows()
+    assert overview.figure_is_current(rows), "study/overview.png is stale: run python -m study.report"
+    changed = [overview.Row(r.group, r.task, [*r.tels, 0.0] if i == 0 else r.tels, r.bc, r.best)
+               for i, r in enumerate(rows)]
+    assert overview.digest(changed) != overview.digest(rows)
+    assert not overview.figure_is_current(changed)
+    stale = tmp_path / "overview.png"  # the same name, so REPORT.md itself stays current
+    overview.draw(changed, stale)
+    assert overview.figure_is_current(changed, stale) and not overview.figure_is_current(rows, stale)
+    monkeypatch.setattr(overview, "FIGURE", stale)
+    assert report.main(["--check"]) == 1
+    assert capsys.readouterr().err.strip() == "overview.png is out of date: run python -m study.report"
+    stale.unlink()
+    assert report.main(["--check"]) == 1
+
+
+def test_overview_rows_read_the_grid_and_pick_the_best_other_baseline():
+    """A row's cells against the JSONs read directly: BC's scores on hopper-medium and the higher-mean of
+    TD3+BC and IQL, each the mean of a run's last 10 evaluations."""
+    import statistics
+
+    from study import overview
+
+    row = next(r for r in overview.rows() if r.task == "hopper-medium-v2-10k")
+    direct = {}
+    for method in ("bc", "td3bc", "iql"):
+        records = [json.loads(p.read_text()) for p in sorted((REPO / "benchmarks/results" / method /
+                                                               "hopper-medium-v2-10k").glob("seed*.json"))]
+        direct[method] = [statistics.fmean(e["score"] for e in r["evaluations"][-10:]) for r in records
+                          if r["budget"]["policy_steps"] == 5000]
+    assert row.bc == pytest.approx(direct["bc"])
+    best = max(("td3bc", "iql"), key=lambda m: statistics.fmean(direct[m]))
+    assert row.best[0] == best and row.best[1] == pytest.approx(direct[best])

@@ -1,0 +1,286 @@
+"""The report's first figure and the sections of the rows beyond the four tuned locomotion sets.
+
+* :func:`figure_section`: every Table 1 and Table 6 row the project can run (locomotion, AntMaze, Adroit),
+  the paper's TELS and BC beside ours (TELS default, BC and the best other baseline), with 95 % intervals.
+  The figure is ``study/overview.png``; the numbers it plots are the table under it, and the PNG carries a
+  digest of them, so ``python -m study.report --check`` fails when either is stale (:func:`figure_is_current`).
+* :func:`held_out_section`: Table 1's five locomotion rows nothing was tuned on, the pre-registered test of the
+  defaults (``benchmarks/results/heldout``, run at the commit each JSON records).
+* :func:`antmaze_section`: Table 1's AntMaze medium and large rows at 100k (``benchmarks/results/antmaze100k``).
+
+Scores are the grid's: the mean of a run's last 10 evaluations at the study budget (5k policy steps), the
+later half of them at a longer one (``study.domains.scores``); cells are the mean over seeds with a 95 %
+Student-t interval (``torchrl_tels.stats``).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks import run_grid
+from study import domains, latent_scale, summary
+from torchrl_tels import stats
+
+GRID = run_grid.DEFAULT_RESULTS
+#: the pre-registered grid on the five locomotion rows nothing was tuned on
+HELD_OUT = GRID / "heldout"
+#: Table 1's AntMaze medium and large rows at 100k transitions
+ANTMAZE_100K = GRID / "antmaze100k"
+FIGURE = summary.HERE / "overview.png"
+#: the figure's PNG text key holding the digest of the numbers it plots
+DIGEST_KEY = "torchrl_tels-data-sha256"
+#: the default's runs on the four tuned locomotion sets (the report's default column)
+TUNED_DEFAULT = dict(latent_scale.ARMS)["preset"]
+OTHER_BASELINES = ("td3bc", "iql")
+HELD_OUT_ARMS = (("tels", "TELS, default"), ("tels_paper", "TELS, paper's reading"), ("bc", "BC"),
+                 ("td3bc", "TD3+BC"), ("iql", "IQL"))
+#: AntMaze 100k: the policy steps of each arm's runs (the baselines Table 11's 100k; TELS 20k after its stage 1)
+ANTMAZE_STEPS = {"tels": 20_000, "bc": 100_000, "iql": 100_000, "td3bc": 100_000}
+ANTMAZE_ARMS = (("tels", "TELS (`domain=maze`)"), ("bc", "BC"), ("iql", "IQL"), ("td3bc", "TD3+BC"))
+
+
+@dataclass(frozen=True)
+class Row:
+    group: str
+    task: str
+    tels: list[float]   # ours, the default
+    bc: list[float]
+    best: tuple[str, list[float]]  # the other baseline with the highest mean: (method, scores)
+
+
+def _all_runs(method: str, task: str, results: Path) -> list[dict]:
+    found = [json.loads(p.read_text()) for p in sorted((results / method / task).glob("seed*.json"))]
+    return sorted(found, key=lambda r: r["seed"])
+
+
+def _scores(method: str, task: str, results: Path = GRID, steps: int | None = domains.STUDY_STEPS) -> list[float]:
+    runs = (_all_runs(method, task, results) if steps is None else domains.runs(method, task, results, steps))
+    return domains.scores(runs)
+
+
+def _best(task: str, results: Path, steps_of=lambda m: domains.STUDY_STEPS) -> tuple[str, list[float]]:
+    scored = [(m, _scores(m, task, results, steps_of(m))) for m in OTHER_BASELINES]
+    scored = [(m, s) for m, s in scored if s]
+    return max(scored, key=lambda ms: sum(ms[1]) / len(ms[1])) if scored else ("", [])
+
+
+def rows() -> list[Row]:
+    """Every row the figure shows, in Table 1's order, then Table 6's."""
+    out = []
+    for task in run_grid.TASKS:
+        tels = [r["final_normalized_score_mean"] for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, task).items())]
+        out.append(Row("locomotion, tuned on", task, tels, _scores("bc", task), _best(task, GRID)))
+    for task in run_grid.HELD_OUT_TASKS:
+        out.append(Row("locomotion, pre-registered", task, _scores("tels", task, HELD_OUT), _scores("bc", task, HELD_OUT),
+                       _best(task, HELD_OUT)))
+    for task in domains.MAZE_TASKS:
+        out.append(Row("AntMaze", task, _scores("tels", task), _scores("bc", task), _best(task, GRID)))
+    for task in run_grid.ANTMAZE_100K_TASKS:
+        out.append(Row("AntMaze", task, _scores("tels", task, ANTMAZE_100K, ANTMAZE_STEPS["tels"]),
+                       _scores("bc", task, ANTMAZE_100K, ANTMAZE_STEPS["bc"]),
+                       _best(task, ANTMAZE_100K, ANTMAZE_STEPS.get)))
+    for task in domains.ADROIT_TASKS:
+        out.append(Row("Adroit", task, _scores("tels", task), _scores("bc", task), _best(task, GRID)))
+    return out
+
+
+def _paper(task: str, method: str) -> tuple[float, float | None] | None:
+    return run_grid.PAPER_TABLE1.get(task, {}).get(method)
+
+
+def _table(all_rows: list[Row]) -> list[str]:
+    lines = ["| group | set | Table 1: TELS | Table 1: BC | ours: TELS (default) | ours: BC | ours: best other baseline |",
+             "|---|---|---|---|---|---|---|"]
+    for row in all_rows:
+        paper = [run_grid.paper_cell(v) if (v := _paper(row.task, m)) else "—" for m in ("tels", "bc")]
+        best_method, best = row.best
+        best_cell = (f"{run_grid.LABELS[best_method]}: {stats.interval_cell(best)}" if best else "no runs")
+        lines.append(f"| {row.group} | {row.task} | {paper[0]} | {paper[1]} | {stats.interval_cell(row.tels)} | "
+                     f"{stats.interval_cell(row.bc)} | {best_cell} |")
+    return lines
+
+
+def digest(all_rows: list[Row]) -> str:
+    """sha256 of the numbers the figure plots (rounded as the table prints them)."""
+    table = "\n".join(_table(all_rows))
+    return hashlib.sha256(table.encode()).hexdigest()
+
+
+def _interval(values: list[float]) -> tuple[float, float, float] | None:
+    if not values:
+        return None
+    centre, low, high = stats.t_interval(values)
+    return (centre, centre, centre) if math.isnan(low) else (centre, low, high)
+
+
+def draw(all_rows: list[Row], path: Path | None = None) -> Path:
+    """The figure (at ``path``, default :data:`FIGURE`): one line per row, the paper's TELS and BC (hollow,
+    ± std) and ours (filled, 95 % t-interval)."""
+    path = path or FIGURE
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series = (("Table 1: TELS", "tab:blue", "s", False, lambda r: _paper(r.task, "tels")),
+              ("Table 1: BC", "tab:orange", "s", False, lambda r: _paper(r.task, "bc")),
+              ("ours: TELS (default)", "tab:blue", "o", True, lambda r: r.tels),
+              ("ours: BC", "tab:orange", "o", True, lambda r: r.bc),
+              ("ours: best other baseline", "tab:green", "D", True, lambda r: r.best[1]))
+    fig, ax = plt.subplots(figsize=(9, 0.42 * len(all_rows) + 1.6))
+    for k, (label, colour, marker, ours, value_of) in enumerate(series):
+        ys, xs, lows, highs = [], [], [], []
+        for i, row in enumerate(all_rows):
+            value = value_of(row)
+            if ours:
+                found = _interval(value)
+            elif value is None:
+                found = None
+            else:
+                mean, std = value
+                found = (mean, mean - (std or 0.0), mean + (std or 0.0))
+            if found is None:
+                continue
+            ys.append(i + (k - 2) * 0.15)
+            xs.append(found[0]), lows.append(found[0] - found[1]), highs.append(found[2] - found[0])
+        ax.errorbar(xs, ys, xerr=[lows, highs], fmt=marker, color=colour, mfc=colour if ours else "white",
+                    ms=5, capsize=2, lw=1, label=label)
+    ax.set_yticks(range(len(all_rows)), [f"{row.task}" for row in all_rows], fontsize=8)
+    ax.invert_yaxis()
+    previous = None
+    for i, row in enumerate(all_rows):
+        if row.group != previous and i:
+            ax.axhline(i - 0.5, color="0.7", lw=0.6)
+        previous = row.group
+    ax.set_xlabel("normalized score (AntMaze: success rate × 100)")
+    ax.set_title("Table 1 and Table 6 beside our runs: the paper's (hollow, ± std) and ours (filled, 95 % t-interval)",
+                 fontsize=9, wrap=True)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right", ncols=2)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=110, metadata={DIGEST_KEY: digest(all_rows)})
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def figure_is_current(all_rows: list[Row], path: Path | None = None) -> bool:
+    """Whether ``path`` (default :data:`FIGURE`) was drawn from these numbers (its PNG text holds their digest)."""
+    path = path or FIGURE
+    from PIL import Image
+
+    if not path.is_file():
+        return False
+    with Image.open(path) as image:
+        return image.text.get(DIGEST_KEY) == digest(all_rows)
+
+
+def figure_section(all_rows: list[Row]) -> list[str]:
+    return ["## At a glance", "",
+            f"![Table 1 and Table 6 beside our runs]({FIGURE.name})", "",
+            "Each row: Table 1's (or Table 6's) TELS and BC as the paper prints them, mean ± std, hollow; ours, "
+            "filled: TELS in the default, BC, and whichever of TD3+BC and IQL scores higher, each the mean over "
+            "seeds with its 95 % t-interval (none at n = 1). Budgets: the study's (5k policy steps) everywhere "
+            "but AntMaze medium and large, where the baselines run Table 11's 100k policy steps and TELS 20k; "
+            "the paper's columns are at 100k. The numbers plotted:", "",
+            *_table(all_rows), ""]
+
+
+def held_out_section() -> list[str]:
+    """The five rows nothing was tuned on: every arm beside Table 1, the pre-registered reading first."""
+    lines = ["## Table 1's other five locomotion rows: a pre-registered test of the defaults", "",
+             "Nothing in the project was tuned on these five sets. Their grid ran the defaults unchanged, at the "
+             "study budget and protocol of the four tuned sets (`python -m benchmarks.run_grid --grid --method bc "
+             "iql td3bc tels tels_paper --task <the five> --seed 0 1 2 --steps 5000 --tsidm-steps 3000 "
+             "--eval-interval 500 --eval-episodes 10 --threads 1 --results-dir benchmarks/results/heldout`); each "
+             "JSON records the commit it ran at (`code`). Arms added after seeing these numbers would be labelled "
+             "as such below the pre-registered ones; there are none.", "",
+             "| set | scores | " + " | ".join(label for _, label in HELD_OUT_ARMS) + " |",
+             "|---|---|" + "---|" * len(HELD_OUT_ARMS)]
+    commits = set()
+    counts = {m: 0 for m, _ in HELD_OUT_ARMS}
+    for task in run_grid.HELD_OUT_TASKS:
+        paper = [run_grid.paper_cell(v) if (v := _paper(task, "tels" if m.startswith("tels") else m)) else "—"
+                 for m, _ in HELD_OUT_ARMS]
+        paper[1] = "(one TELS column)"
+        lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
+        cells = []
+        for method, _ in HELD_OUT_ARMS:
+            runs = domains.runs(method, task, HELD_OUT)
+            counts[method] += len(runs)
+            commits.update((r.get("code") or {}).get("commit") or "unrecorded" for r in runs)
+            cells.append(stats.interval_cell(domains.scores(runs)))
+        lines.append("| | ours, study budget | " + " | ".join(cells) + " |")
+    expected = 3 * len(run_grid.HELD_OUT_TASKS)
+    missing = [f"{label} {expected - counts[m]}" for m, label in HELD_OUT_ARMS if counts[m] < expected]
+    lines += ["", "Runs: " + ", ".join(f"{label} {counts[m]} of {expected}" for m, label in HELD_OUT_ARMS) + ". "
+              + ("Every cell has its three seeds. " if not missing else
+                 "Missing (still to run, with the command above, which skips what exists): "
+                 + ", ".join(missing) + ". ")
+              + "Commits: " + (", ".join(f"`{c[:7]}`" for c in sorted(commits)) or "none") + ".", ""]
+    lines += _held_out_verdict()
+    return lines
+
+
+def _held_out_verdict() -> list[str]:
+    """The default against BC over all nine locomotion rows, once every cell has three seeds."""
+    import numpy as np
+
+    tasks = (*run_grid.TASKS, *run_grid.HELD_OUT_TASKS)
+
+    def matrix(scores_of) -> np.ndarray | None:
+        by_task = [scores_of(t) for t in tasks]
+        if any(len(s) < 3 for s in by_task):
+            return None
+        return np.array([s[:3] for s in by_task]).T  # [seeds, tasks]
+
+    tuned_default = {t: [r["final_normalized_score_mean"] for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, t).items())]
+                     for t in run_grid.TASKS}
+    default = matrix(lambda t: tuned_default[t] if t in tuned_default else _scores("tels", t, HELD_OUT))
+    bc = matrix(lambda t: _scores("bc", t) if t in run_grid.TASKS else _scores("bc", t, HELD_OUT))
+    if default is None or bc is None:
+        return ["**Verdict over the nine rows**: not yet; it needs three seeds of the default and of BC on every row.",
+                ""]
+    estimates = run_grid._interval_estimates({"default": default, "bc": bc})
+    (d_iqm, d_low, d_high), (b_iqm, b_low, b_high) = estimates["default"][0], estimates["bc"][0]
+    relation = "above" if d_low > b_high else "below" if d_high < b_low else "level with"
+    return [f"**Verdict over the nine rows × 3 seeds** (pre-registered reading): the default's IQM "
+            f"{d_iqm:.1f} [{d_low:.1f}, {d_high:.1f}] is {relation} BC's, {b_iqm:.1f} [{b_low:.1f}, {b_high:.1f}] "
+            "(stratified-bootstrap 95 % intervals).", ""]
+
+
+def antmaze_section() -> list[str]:
+    """Table 1's AntMaze medium and large rows: every arm run so far beside the paper, and what is missing."""
+    lines = ["## AntMaze medium and large at 100k", "",
+             "Data: the four sets of `../shared/datasets/antmaze/`, 100k transitions each, regenerated with D4RL's "
+             "goal-reaching policy, ant, maze maps, waypoint controller and noise (sha256 in its `manifest.json`; "
+             "`recipes/collect_antmaze.py` makes new samples of the same process). Evaluation: D4RL's test maze, ant "
+             "dynamics and frame (`torchrl_tels.envs.antmaze`), a new goal at every reset, 1000-step episodes, "
+             "success within 0.5; 20 episodes every 5,000 steps (TELS: every 2,000), the score 100 × the success "
+             "rate averaged over the later half of the evaluations. Baselines: 100k policy steps with the maze "
+             "settings settled on umaze (IQL: the authors' actor and AntMaze values; rewards r − 1).", "",
+             "| set | scores | " + " | ".join(label for _, label in ANTMAZE_ARMS) + " |",
+             "|---|---|" + "---|" * len(ANTMAZE_ARMS)]
+    zero, found = [], 0
+    for task in run_grid.ANTMAZE_100K_TASKS:
+        paper = [run_grid.paper_cell(v) if (v := _paper(task, m)) else "—" for m, _ in ANTMAZE_ARMS]
+        lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
+        cells = []
+        for method, _ in ANTMAZE_ARMS:
+            scores = _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method])
+            found += len(scores)
+            if scores and method != "tels" and max(scores) > 0:
+                zero.append(f"{run_grid.LABELS[method]} on {task.removesuffix('-v2-100k')}")
+            cells.append(stats.interval_cell(scores))
+        lines.append("| | ours | " + " | ".join(cells) + " |")
+    expected = 3 * len(ANTMAZE_ARMS) * len(run_grid.ANTMAZE_100K_TASKS)
+    lines += ["", f"Runs: {found} of the grid's {expected} (4 sets × 4 arms × 3 seeds). "
+              + ("Baselines above zero, against Table 1's zeros: " + ", ".join(zero) + ". " if zero else "")
+              + "Not run yet: the rest of the grid, TELS's α = 0 arm, Fig. 3's deletion test and Table 9's ablations "
+              "(commands in [LOG.md](LOG.md)).", ""]
+    return lines
