@@ -26,6 +26,15 @@ Setups:
     ``antmaze-umaze-v0-10k`` (shipped with the package) with POR's box
     x in [5, 10], y in [2, 7] (D4RL coordinates), evaluated in the D4RL
     antmaze-umaze task.
+``antmaze-medium``
+    ``antmaze-medium-diverse-v2-100k`` (the paper's Fig. 3 set; ``load_dataset``
+    finds it in a data folder), evaluated in D4RL's medium test maze. The
+    route from the start cell (1, 1) to the goal cell (6, 6) is unique; its
+    five chokepoints, the route's cells with two open sides other than the
+    start and goal, are (1, 2), (3, 3), (4, 5), (4, 6) and (5, 6) (D4RL's
+    row, col), centred at (x, y) = (4, 0), (8, 8), (16, 12), (20, 12) and
+    (20, 16). The regions are 2 m squares on them (the corridors are 4 m
+    wide), so the route keeps its walls but loses its middle.
 
 Results go to ``benchmarks/results/ood/<setup>/<method>/ratio<r>_seed<k>.json``
 (temp file + rename; existing results are skipped unless ``--force``).
@@ -57,8 +66,8 @@ from torchrl_tels.training import write_text
 DEFAULT_RESULTS = REPO / "benchmarks" / "results" / "ood"
 DEFAULT_WORK = REPO / "runs" / "ood"
 
-METHODS = ("iql", "tels")
-LABELS = {"iql": "IQL (TorchRL)", "tels": "TELS"}
+METHODS = ("iql", "tels", "bc")
+LABELS = {"iql": "IQL (TorchRL)", "tels": "TELS", "bc": "BC"}
 RATIOS = (0.0, 0.7, 1.0)  # Fig. 3
 ROLLOUTS = 20  # Fig. 3: 20 policy rollouts per panel
 POINTMAZE_DATASET_ID = "local/pointmaze/medium-noisy-v0"
@@ -108,7 +117,20 @@ def _antmaze_umaze() -> tuple[Setup, list]:
     return setup, [(5.0, 10.0, 2.0, 7.0)]  # POR's box
 
 
-SETUPS = {"pointmaze-medium": _pointmaze_medium, "antmaze-umaze": _antmaze_umaze}
+def _antmaze_medium() -> tuple[Setup, list]:
+    from torchrl_tels.envs.antmaze import MAZES
+
+    maze = MAZES["medium"]
+    rows = len(maze.rows)
+    flipped = tuple(tuple(int(c == "1") for c in row) for row in reversed(maze.rows))  # Setup's rows grow down in y
+    setup = Setup("antmaze-medium", "antmaze-medium-diverse-v2-100k", "antmaze-medium-diverse-v2-100k", flipped,
+                  4.0, (-4.0, 4.0 * (rows - 2)), (rows - 2, 1), (rows - 1 - maze.goal_cell[0], maze.goal_cell[1]))
+    chokepoints = ((1, 2), (3, 3), (4, 5), (4, 6), (5, 6))
+    boxes = [(x - 1.0, x + 1.0, y - 1.0, y + 1.0) for x, y in (maze.cell_centre(c).tolist() for c in chokepoints)]
+    return setup, boxes
+
+
+SETUPS = {"pointmaze-medium": _pointmaze_medium, "antmaze-umaze": _antmaze_umaze, "antmaze-medium": _antmaze_medium}
 
 
 def ensure_dataset(setup: Setup) -> None:
@@ -158,10 +180,10 @@ def train_tels(setup: Setup, boxes, ratio: float, seed: int, args):
                         "wall_time_s": results.get("wall_time_s"), "steps_per_s": results.get("steps_per_s")}
 
 
-def train_iql(setup: Setup, data, seed: int, args):
+def train_baseline_policy(method: str, setup: Setup, data, seed: int, args):
     results, actor, env = train_baseline(
-        "iql", data, task=setup.task, steps=args.steps, seed=seed, eval_interval=args.steps, eval_episodes=1,
-        eval_last_n=1, eval_batched=False, threads=args.threads, hyperparameters=MAZE_HYPERPARAMETERS["iql"],
+        method, data, task=setup.task, steps=args.steps, seed=seed, eval_interval=args.steps, eval_episodes=1,
+        eval_last_n=1, eval_batched=False, threads=args.threads, hyperparameters=MAZE_HYPERPARAMETERS.get(method, {}),
         return_policy=True,
     )
     return actor, env, {"wall_time_s": results["wall_time_s"], "steps_per_s": results["steps_per_s"],
@@ -187,7 +209,7 @@ def run_one(setup_name: str, method: str, ratio: float, seed: int, args) -> Path
     if method == "tels":
         actor, env, extra = train_tels(setup, boxes, ratio, seed, args)
     else:
-        actor, env, extra = train_iql(setup, data, seed, args)
+        actor, env, extra = train_baseline_policy(method, setup, data, seed, args)
     task = get_task(setup.task)
     paths, successes = [], []
     for rollout in rollout_episodes(actor, env, ROLLOUTS, seed=1_000_000 + seed * 1000,
@@ -250,7 +272,8 @@ def render_report(results_dir: Path) -> Path:
              "|---|---|---|" + "---|" * len(RATIOS)]
     for setup_name, runs in sorted(found.items()):
         setup, boxes = SETUPS[setup_name]()
-        for method in METHODS:
+        methods = [m for m in METHODS if any(method == m for method, _ in runs)]  # those run on this setup
+        for method in methods:
             cells, budgets = [], set()
             for ratio in RATIOS:
                 records = runs.get((method, ratio), [])
@@ -266,12 +289,12 @@ def render_report(results_dir: Path) -> Path:
             lines.append(f"| {setup_name} | {LABELS[method]} | {budget} | " + " | ".join(cells) + " |")
 
         full = load_dataset(setup.dataset)
-        fig, axes = plt.subplots(len(METHODS), len(RATIOS), figsize=(3.2 * len(RATIOS), 3.2 * len(METHODS)),
+        fig, axes = plt.subplots(len(methods), len(RATIOS), figsize=(3.2 * len(RATIOS), 3.2 * len(methods)),
                                  squeeze=False)
         for col, ratio in enumerate(RATIOS):
             kept = delete_regions(full, boxes, ratio, seed=0)["observation"][:, :2].numpy()
             step = max(1, len(kept) // 6000)
-            for row, method in enumerate(METHODS):
+            for row, method in enumerate(methods):
                 ax = axes[row][col]
                 _draw_maze(ax, setup)
                 ax.scatter(kept[::step, 0], kept[::step, 1], s=0.3, color="tab:blue", alpha=0.25, lw=0)
