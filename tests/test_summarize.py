@@ -95,3 +95,61 @@ def test_runs_with_other_settings_are_arms_of_their_own(sweep, tmp_path):
     low = [r for r in rows if r["arm"] == "guide.alpha=0.01" and r["dataset"] == "hopper-medium-v2-10k"]
     assert float(low[0]["mean"]) == pytest.approx(12.0) and low[0]["n"] == "3"
     assert (out / "summary_arm0.png").exists() and (out / "summary_arm1.png").exists()
+
+
+def test_summary_plot_title_is_not_cut_off(tmp_path):
+    """At the plot's default size (one or two datasets: the narrowest figure), the whole title lies inside it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_tels.summary import Summary
+
+    summary = Summary(datasets={"hopper-medium-v2-10k": {"mean": 40.0, "low": 35.0, "high": 45.0, "n": 3,
+                                                          "seeds": [0, 1, 2], "scores": [38.0, 40.0, 42.0]}})
+    opened = []
+    original = plt.subplots
+
+    def keep(*args, **kwargs):
+        fig, ax = original(*args, **kwargs)
+        opened.append(fig)
+        return fig, ax
+
+    plt.subplots = keep
+    try:
+        summary.plot(tmp_path / "summary.png", title="guide.alpha=0.01 tsidm.beta=1 on the hopper sets")
+    finally:
+        plt.subplots = original
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = opened[0]
+    renderer = FigureCanvasAgg(fig).get_renderer()  # the plot closed its figure
+    box, frame = fig.axes[0].title.get_window_extent(renderer), fig.bbox
+    assert box.x0 >= frame.x0 and box.x1 <= frame.x1 and box.y1 <= frame.y1
+
+
+def test_evaluation_plot_shows_each_evaluation_s_episodes(tmp_path, monkeypatch):
+    """eval_scores.png's series: the mean line, every episode's score as a dot, and the band between the
+    25th and 75th percentiles of each evaluation's episodes (checked against NumPy)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchrl_tels.training import plot_curves
+
+    episodes = {500: [10.0, 20.0, 30.0, 40.0], 1000: [50.0, 55.0, 90.0, 95.0]}
+    opened = []
+    original = plt.subplots
+    monkeypatch.setattr(plt, "subplots", lambda *a, **k: opened.append(original(*a, **k)) or opened[-1])
+    plot_curves({"score": [(s, float(np.mean(v))) for s, v in episodes.items()]}, tmp_path / "eval_scores.png",
+                title="t", spread={"score": list(episodes.items())})
+    _, ax = opened[0]
+    (dots,) = ax.collections[1:2]
+    assert sorted(map(tuple, dots.get_offsets().tolist())) == sorted((s, x) for s, v in episodes.items() for x in v)
+    band = ax.collections[0].get_paths()[0].vertices
+    for step, values in episodes.items():
+        at = band[np.isclose(band[:, 0], step), 1]
+        assert np.isclose(at.min(), np.percentile(values, 25)) and np.isclose(at.max(), np.percentile(values, 75))
+    assert (tmp_path / "eval_scores.png").stat().st_size > 0

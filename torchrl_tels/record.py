@@ -176,7 +176,9 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
     plot_curves({k: v for k, v in run.policy_history.items() if "loss" in k or "ratio" in k},
                 run_dir / "policy_losses.png", title="latent value and guide losses; T-symmetry share", logy=True)
     plot_curves({"score": [(e["step"], e["score"]) for e in evaluations]}, run_dir / "eval_scores.png",
-                title=f"TELS on {cfg.dataset.name}", ylabel=results["score_kind"])
+                title=f"TELS on {cfg.dataset.name}: each evaluation's mean, its episodes and their middle half",
+                ylabel=results["score_kind"],
+                spread={"score": [(e["step"], e.get("scores") or []) for e in evaluations]})
     if monitor is not None and monitor.get("windows"):
         longest = max(len(window) for window in monitor["windows"])
         series = {f"episode {i}": list(enumerate(window, 1)) for i, window in enumerate(monitor["windows"])}

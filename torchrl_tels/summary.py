@@ -15,6 +15,7 @@ import io
 import json
 import math
 import os
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -104,7 +105,9 @@ class Summary:
             ax.errorbar([i], [row["mean"]], yerr=err, fmt="o", color="C0", capsize=4, zorder=3)
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel("normalized score")
-        ax.set_title((f"{title}: " if title else "") + "mean and 95 % t-interval over seeds (dots: seeds)", fontsize=9)
+        text = (f"{title}: " if title else "") + "mean and 95 % t-interval over seeds (dots: seeds)"
+        # wrapped to the figure's width (about 11 characters an inch at 9 pt, centred over the axes), so none of it is cut off
+        ax.set_title(textwrap.fill(text, width=int(11 * fig.get_figwidth())), fontsize=9)
         fig.tight_layout()
         tmp = path.with_name(f".{path.name}.tmp.png")
         fig.savefig(tmp, dpi=120)

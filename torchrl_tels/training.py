@@ -175,9 +175,16 @@ def plot_curves(
     xlabel: str = "step",
     ylabel: str = "value",
     logy: bool = False,
+    spread: Mapping[str, Sequence[tuple[int, Sequence[float]]]] | None = None,
 ) -> None:
-    """One PNG with a line per named series of ``(step, value)`` pairs, written atomically."""
+    """One PNG with a line per named series of ``(step, value)`` pairs, written atomically.
+
+    ``spread`` gives, for a series, the values behind each of its points (an evaluation's episode scores): they
+    are drawn as dots, with the band between their 25th and 75th percentiles, so the plot shows how much the
+    episodes disagree and not only their mean.
+    """
     import matplotlib
+    import numpy as np
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -186,7 +193,14 @@ def plot_curves(
     for name, points in series.items():
         if points:
             steps, values = zip(*points)
-            ax.plot(steps, values, label=name)
+            line, = ax.plot(steps, values, label=name)
+            behind = [(step, list(v)) for step, v in (spread or {}).get(name, []) if len(v)]
+            if behind:
+                at = [step for step, _ in behind]
+                ax.fill_between(at, [np.percentile(v, 25) for _, v in behind], [np.percentile(v, 75) for _, v in behind],
+                                color=line.get_color(), alpha=0.2, lw=0, label=f"{name}: 25-75 % of episodes")
+                ax.scatter([s for s, v in behind for _ in v], [x for _, v in behind for x in v], s=6,
+                           color=line.get_color(), alpha=0.4, lw=0, label=f"{name}: episodes")
     if logy:
         ax.set_yscale("symlog", linthresh=1e-3)
     ax.set_title(title)
