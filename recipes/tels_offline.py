@@ -52,6 +52,7 @@ from torchrl_tels.config import (  # noqa: E402
 from torchrl_tels.envs import make_eval_envs  # noqa: E402
 from torchrl_tels.errors import TelsError  # noqa: E402
 from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
+from torchrl_tels.monitor import check_monitor_data, make_monitor, monitor_in_background, MonitorFit  # noqa: E402
 from torchrl_tels.seeds import SeedRNG  # noqa: E402
 from torchrl_tels.training import write_text  # noqa: E402
 from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
@@ -63,12 +64,8 @@ from torchrl_tels.trainer import (  # noqa: E402
     evaluation_scalars,
     fit_tsidm_seeds,
     load_pretrained_tsidm,
-    check_monitor_data,
     make_data,
-    make_monitor,
     make_stage1,
-    monitor_in_background,
-    MonitorFit,
     make_stage2,
     print_plan,
     RunState,

@@ -10,19 +10,14 @@ here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
 * :func:`make_stage1` / :func:`fit_tsidm`: the TS-IDM and Eq. (7);
 * :func:`make_stage2`: the latent value (Eq. 8), the guide (Eq. 9/10), their
   optimizers and the actor of Eq. (11);
-* :func:`make_monitor`: the deployment monitor of the run's data, fitted once and saved;
 * :func:`evaluate`: deterministic episodes with the diagnostics of a frozen policy and,
   when given the deployment monitor, its scores and alarms along the episodes.
 """
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import dataclasses
 import math
-import os
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -36,10 +31,8 @@ from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
-from torchrl_tels.config import (available_cpus, check_same_run, monitor_fit_options, resolve_device,
-                                 resolve_precision, resolve_threads, training_config)
-from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
-                               subset_dataset, subset_trajectories, trajectory_ids)
+from torchrl_tels.config import check_same_run, resolve_device, resolve_precision, training_config
+from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import (action_chain_statistics, awr_weight_statistics, is_frozen, is_off_data,
                                      latent_statistics, maze_cells, rollout_statistics)
@@ -47,8 +40,8 @@ from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, ro
                                TSIDMEncoderTransform)
 from torchrl_tels.envs.antmaze import ENV_ID as ANTMAZE_ENV_ID
 from torchrl_tels.envs.evaluation import episode_success, eval_env_spaces, success_rate
-from torchrl_tels.envs.monitor import running_mean
-from torchrl_tels.errors import DatasetError, MonitorError, TaskError
+from torchrl_tels.errors import DatasetError, TaskError
+from torchrl_tels.monitor import monitor_record
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
 from torchrl_tels import training
@@ -728,131 +721,6 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     )
 
 
-def monitor_data(cfg, data: TensorDictBase) -> TensorDictBase:
-    """The transitions the monitor fits on: all of them, or whole trajectories drawn at random (seeded by the
-    run's seed) up to ``monitor.max_transitions``."""
-    cap = cfg.monitor.get("max_transitions")
-    return subset_trajectories(data, cap, cfg.seed) if cap and len(data) > cap else data
-
-
-def check_monitor_data(cfg, data: TensorDictBase) -> None:
-    """Refuses, before anything is written, data with too few trajectories for ``cfg.monitor``'s calibration."""
-    count = int(trajectory_ids(monitor_data(cfg, data))[-1]) + 1
-    need = cfg.monitor.folds if cfg.monitor.calibration == "cross_fit" else 2
-    if count < need:
-        raise MonitorError(f"the deployment monitor's {cfg.monitor.calibration} calibration needs at least {need} "
-                           f"trajectories, and the training data holds {count}; lower monitor.folds or use "
-                           "monitor.calibration=split.")
-
-
-def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
-    """The run's deployment monitor, fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split
-    calibration) and saved as ``run_dir/monitor.pt``; a continuation (``resume=true``) reads that file back
-    when it was fitted to the same dataset, seed and ``monitor`` settings, and refits it otherwise.
-
-    Its detectors are a one-step dynamics ensemble and the nearest data state, combined into the
-    default ``ood_score``. The TS-IDM's terms are not included: the run's TS-IDM is trained on every
-    trajectory and so leaves none to calibrate them on (``DeploymentMonitor.fit`` adds them for a
-    TS-IDM trained on a split).
-    """
-    path = run_dir / "monitor.pt"
-    # The ensemble trains on the CPU: in bf16 where that CPU multiplies it natively, unless the run asks for
-    # fp32. Paired runs detected and alarmed as fp32 at about half the fit time (benchmarks/results/monitor/MONITOR.md).
-    precision = "fp32" if cfg.precision == "fp32" else resolve_precision("auto", "cpu")
-    settings = {k: v for k, v in OmegaConf.to_container(cfg.monitor, resolve=True).items() if k != "background"}
-    fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed), "precision": precision,
-                  "monitor": settings}
-    if cfg.resume and path.is_file():
-        monitor = DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
-                                         action_dim=data["action"].shape[-1])
-        if all(monitor.metadata.get(key) == value for key, value in fitted_for.items()):
-            return monitor
-    m = cfg.monitor
-    options = {**monitor_fit_options(m), "quantile": m.quantile, "seed": cfg.seed, "precision": precision}
-    full = len(data)
-    data = monitor_data(cfg, data.cpu())  # whole trajectories: the held-out calibration splits by trajectory
-    if len(data) < full:
-        print(f"deployment monitor: fitted on {len(data)} of {full} transitions, whole trajectories drawn at random "
-              f"(monitor.max_transitions={m.max_transitions})", flush=True)
-    clock = time.perf_counter()
-    with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
-        if m.calibration == "cross_fit":
-            monitor = DeploymentMonitor.cross_fit(data, folds=m.folds, **options)
-        else:
-            train, calibration = split_trajectories(data, 1.0 - float(m.holdout), cfg.seed)
-            monitor = DeploymentMonitor.fit(train, calibration, **options)
-    print(f"deployment monitor: {m.calibration} calibration, threshold {float(monitor.threshold):.3g}, "
-          f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)", flush=True)
-    monitor.save(path, metadata=fitted_for)
-    return monitor
-
-
-def _exit_with_parent(parent: int) -> None:
-    """Ends this process when the run that started it ends, however it ends. A daemon child is stopped only by
-    its parent's own exit handlers, so a run killed by a signal (a scheduler's SIGTERM, SIGKILL, OOM) would leave
-    the fit running on its core and writing into a run folder that may be resumed meanwhile. Linux stops the
-    child itself when asked (``PR_SET_PDEATHSIG``); a parent already gone by then is checked after asking."""
-    if sys.platform.startswith("linux"):
-        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != parent:
-        os._exit(1)
-
-
-def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str, errors, parent: int) -> None:
-    """:func:`make_monitor` in a process of its own, on one thread, that ends with the run; the monitor lands in
-    ``run_dir/monitor.pt``, a failure's message in ``errors``."""
-    _exit_with_parent(parent)
-    torch.set_num_threads(1)
-    try:
-        make_monitor(OmegaConf.create(config), data, Path(run_dir))
-    except BaseException as err:  # reported to the parent, which raises it as one MonitorError
-        errors.put(f"{type(err).__name__}: {err}")
-        raise
-
-
-def monitor_in_background(cfg) -> bool:
-    """``monitor.background``: ``auto`` fits the monitor beside training when the machine has a core the run's
-    torch threads leave free."""
-    setting = cfg.monitor.get("background", False)
-    if setting == "auto":
-        return available_cpus() > resolve_threads(cfg.threads)
-    return bool(setting)
-
-
-class MonitorFit:
-    """The run's deployment monitor (:func:`make_monitor`), fitted inline or, with ``background``, in a process
-    of its own while the stages train; :meth:`get` waits for it. The two give the same monitor: its fits are
-    seeded and its calibration draws on its own generators."""
-
-    def __init__(self, cfg, data: TensorDictBase, run_dir: Path, background: bool) -> None:
-        self.path, self._monitor, self._process = run_dir / "monitor.pt", None, None
-        self._sizes = {"observation_dim": data["observation"].shape[-1], "action_dim": data["action"].shape[-1]}
-        if not background:
-            self._monitor = make_monitor(cfg, data, run_dir)
-            return
-        context = torch.multiprocessing.get_context("spawn")
-        self._errors = context.SimpleQueue()
-        # A daemon: a run that stops early (an error, Ctrl-C) does not wait for the fit.
-        self._process = context.Process(target=_fit_monitor_in_child, daemon=True, args=(
-            OmegaConf.to_container(cfg, resolve=True), data.cpu(), str(run_dir), self._errors, os.getpid()))
-        self._process.start()
-
-    def failed(self) -> bool:
-        """Whether a background fit has already ended without its monitor (checked without waiting)."""
-        return self._process is not None and not self._process.is_alive() and self._process.exitcode != 0
-
-    def get(self) -> DeploymentMonitor:
-        """The monitor; waits for a background fit, and raises :class:`MonitorError` if it failed."""
-        if self._monitor is None:
-            self._process.join()
-            if self._process.exitcode != 0:
-                reason = self._errors.get() if not self._errors.empty() else f"exit code {self._process.exitcode}"
-                raise MonitorError(f"the deployment monitor's fit failed: {reason}")
-            self._monitor = DeploymentMonitor.load(self.path, **self._sizes)
-        return self._monitor
-
-
 def score(task: Task, episode_return: float) -> float:
     """The D4RL normalized score where the task has reference scores, else the raw return."""
     return normalized_score(task, episode_return) if task.has_reference_scores else episode_return
@@ -890,7 +758,7 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
                                   latent_stats["data_action_std"]),
               "off_data": is_off_data(guide_step, latent_stats["latent_step_rms"]), **success_rate(successes)}
     if monitor is not None:
-        result["monitor"] = _monitor_record(monitor, monitored)
+        result["monitor"] = monitor_record(monitor, monitored)
     return result
 
 
@@ -923,24 +791,3 @@ def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:
     """The scalars of one :func:`evaluate` record that a logger plots: the score and the behaviour diagnostics."""
     keys = ("score", "success_rate", "guide_step_rms", "realized_error_ratio", "action_std")
     return {f"{prefix}eval/{k}": float(evaluation[k]) for k in keys if evaluation.get(k) is not None}
-
-
-def _monitor_record(monitor: DeploymentMonitor, rollouts: list) -> dict:
-    """The monitor along each episode: its score and windowed mean at every step, the fraction of flagged
-    steps and of alarmed steps. A monitor error (a non-finite state) is recorded, not raised, so it never
-    costs the finished training."""
-    record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile),
-              "window": monitor.window, "window_threshold": float(monitor.window_threshold),
-              "window_quantile": float(monitor.window_quantile)}
-    try:
-        device = monitor.threshold.device
-        scores = [monitor(rollout.to(device))["next", "ood_score"].reshape(-1).cpu() for rollout in rollouts]
-    except MonitorError as err:
-        return {**record, "error": str(err)}
-    windows = [running_mean(score, monitor.window).float() for score in scores]
-    flat, flat_windows = torch.cat(scores), torch.cat(windows)
-    return {**record, "ood_fraction": (flat > monitor.threshold).float().mean().item(),
-            "alarm_fraction": (flat_windows > monitor.window_threshold).float().mean().item(),
-            "scores": [score.tolist() for score in scores], "windows": [window.tolist() for window in windows]}
-
-
