@@ -44,6 +44,7 @@ from torchrl_tels.errors import DatasetError, TaskError
 from torchrl_tels.monitor import monitor_record
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
+from torchrl_tels.run_folder import RunFolder
 from torchrl_tels import training
 from torchrl_tels.seeds import SeedRNG, StackedLoss
 from torchrl_tels.training import check_finite_state, FiniteWatch, get_rng_state, set_rng_state, sum_losses
@@ -347,11 +348,13 @@ def make_tsidm_loss(cfg, tsidm: TSIDM, beta: float) -> TSIDMLoss:
                      term_weights=term_weights, relative=t.latent_scale == "relative", check_inputs=False)
 
 
-def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None):
+def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: RunFolder | Path, logger=None):
     """Stage 1 for one β (Eq. 7): a trained TS-IDM, its final losses and its loss history.
 
-    Final losses average the last 10 % of steps, which App. B.5's β rule compares.
+    Final losses average the last 10 % of steps, which App. B.5's β rule compares; the checkpoints go to
+    ``run_dir``'s state file.
     """
+    folder = RunFolder(run_dir)
     t = cfg.tsidm
     device = resolve_device(cfg.device)
     tsidm = make_tsidm(cfg, data).to(device)
@@ -386,7 +389,7 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
         if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
             watch.check()
             run.step, run.tsidm_history = step + 1, history
-            run.save(run_dir / "state.pt", loss=loss_module.state_dict(), optim=optim.state_dict(),
+            run.save(folder.state_path, loss=loss_module.state_dict(), optim=optim.state_dict(),
                      tail=[pair.tolist() for pair in tail])
     watch.check()
     check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total}")
@@ -398,13 +401,14 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     return tsidm.eval(), final, history
 
 
-def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: Path, logger=None):
+def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: RunFolder | Path, logger=None):
     """Stage 1 (Eq. 7) for several seeds at once, one ``(tsidm, final, history)`` per seed.
 
     :func:`fit_tsidm`, with the seeds' TS-IDM losses stacked (:class:`~torchrl_tels.seeds.StackedLoss`):
     each seed is initialised and draws its batches from its own RNG stream, as its single-seed run does.
     ``run`` checkpoints the stacked state and the streams; resuming continues all seeds.
     """
+    folder = RunFolder(run_dir)
     t = cfg.tsidm
     beta = float(t.beta)
     device = resolve_device(cfg.device)
@@ -446,7 +450,7 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
         if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
             watch.check()
             run.step = step + 1
-            run.save(run_dir / "state.pt", loss=stack.state_dict(), optim=optim.state_dict(),
+            run.save(folder.state_path, loss=stack.state_dict(), optim=optim.state_dict(),
                      seed_rng=rng.state_dict(), histories=histories, tail=[pair.tolist() for pair in tail])
     watch.check()
     stack.write_back()
@@ -480,13 +484,13 @@ def load_pretrained_tsidm(cfg, data) -> TSIDM | None:
 
 
 def adopt_pretrained_tsidm(cfg, pretrained: TSIDM, run: RunState, run_dirs) -> TSIDM:
-    """Starts ``run`` at stage 2 from ``tsidm.checkpoint``'s TS-IDM, copied into each of ``run_dirs`` as ``tsidm.pt``
+    """Starts ``run`` at stage 2 from ``tsidm.checkpoint``'s TS-IDM, copied into each of the run folders ``run_dirs``
     (its source in the metadata), so that a run folder holds every model it acted with: export and the readings of
     finished runs load ``tsidm.pt`` from the folder, and the checkpoint may move or change after the run."""
     skip_stage1(run)
     metadata = {**pretrained.metadata, "checkpoint": str(cfg.tsidm.checkpoint)}
     for run_dir in run_dirs:
-        pretrained.save(Path(run_dir) / "tsidm.pt", metadata=metadata)
+        pretrained.save(RunFolder(run_dir).tsidm_path, metadata=metadata)
     return pretrained
 
 
@@ -505,16 +509,18 @@ def check_same_stage1_length(cfg, datas: list, seeds: list[int]) -> int:
     return totals.pop()
 
 
-def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained: TSIDM | None = None) -> TSIDM:
+def make_stage1(cfg, data, run: RunState, run_dir: RunFolder | Path, logger=None,
+                pretrained: TSIDM | None = None) -> TSIDM:
     """Algorithm 1, lines 1-4: the ``pretrained`` TS-IDM, this run's finished stage 1, or a trained one.
 
     With ``tsidm.beta=auto`` each candidate is trained and the one with the lowest final
     training loss is kept (App. B.5); finished candidates survive an interruption.
     """
+    folder = RunFolder(run_dir)
     if pretrained is not None:
         return adopt_pretrained_tsidm(cfg, pretrained, run, [run_dir])
     if run.stage != "tsidm":
-        return TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
+        return TSIDM.load(folder.tsidm_path, observation_dim=data["observation"].shape[-1],
                           action_dim=data["action"].shape[-1])
     candidates = list(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else [float(cfg.tsidm.beta)]
     key = SELECTION_KEYS[cfg.tsidm.beta_selection]
@@ -531,18 +537,18 @@ def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained
                   f"{final['final_sum']:.5f} (unweighted)")
             if min(r[key] for r in run.beta_results) == final[key]:
                 best = (model, history, beta)
-                model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
+                model.save(folder.best_tsidm_path, metadata={"beta": beta, "history": history})
             run.candidate, run.step, run.tsidm_history = candidate + 1, 0, {}
-            run.save(run_dir / "state.pt")
+            run.save(folder.state_path)
         if best is None:
-            model = TSIDM.load(run_dir / "best_tsidm.pt")
+            model = TSIDM.load(folder.best_tsidm_path)
             best = (model, model.metadata["history"], model.metadata["beta"])
         tsidm, run.tsidm_history, beta = best
         tsidm.metadata = {"beta": beta, "dataset": str(cfg.dataset.name), "beta_results": run.beta_results}
-        tsidm.save(run_dir / "tsidm.pt", metadata=tsidm.metadata)
-    print(f"stage 1 done: beta={beta:g}, TS-IDM saved to {run_dir / 'tsidm.pt'}")
+        tsidm.save(folder.tsidm_path, metadata=tsidm.metadata)
+    print(f"stage 1 done: beta={beta:g}, TS-IDM saved to {folder.tsidm_path}")
     run.stage, run.candidate, run.step = "policy", 0, 0
-    run.save(run_dir / "state.pt")
+    run.save(folder.state_path)
     return tsidm
 
 

@@ -18,6 +18,7 @@ from torchrl_tels.config import available_cpus, monitor_fit_options, resolve_pre
 from torchrl_tels.data import split_trajectories, subset_trajectories, trajectory_ids
 from torchrl_tels.envs import DeploymentMonitor
 from torchrl_tels.errors import MonitorError
+from torchrl_tels.run_folder import RunFolder
 
 __all__ = ["MonitorFit", "check_monitor_data", "make_monitor", "monitor_data", "monitor_in_background"]
 
@@ -39,7 +40,7 @@ def check_monitor_data(cfg, data: TensorDictBase) -> None:
                            "monitor.calibration=split.")
 
 
-def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
+def make_monitor(cfg, data: TensorDictBase, run_dir: RunFolder | Path) -> DeploymentMonitor:
     """The run's deployment monitor, fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split
     calibration) and saved as ``run_dir/monitor.pt``; a continuation (``resume=true``) reads that file back
     when it was fitted to the same dataset, seed and ``monitor`` settings, and refits it otherwise.
@@ -49,7 +50,7 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
     trajectory and so leaves none to calibrate them on (``DeploymentMonitor.fit`` adds them for a
     TS-IDM trained on a split).
     """
-    path = run_dir / "monitor.pt"
+    path = RunFolder(run_dir).monitor_path
     # The ensemble trains on the CPU: in bf16 where that CPU multiplies it natively, unless the run asks for
     # fp32. Paired runs detected and alarmed as fp32 at about half the fit time (benchmarks/results/monitor/MONITOR.md).
     precision = "fp32" if cfg.precision == "fp32" else resolve_precision("auto", "cpu")
@@ -119,8 +120,8 @@ class MonitorFit:
     of its own while the stages train; :meth:`get` waits for it. The two give the same monitor: its fits are
     seeded and its calibration draws on its own generators."""
 
-    def __init__(self, cfg, data: TensorDictBase, run_dir: Path, background: bool) -> None:
-        self.path, self._monitor, self._process = run_dir / "monitor.pt", None, None
+    def __init__(self, cfg, data: TensorDictBase, run_dir: RunFolder | Path, background: bool) -> None:
+        self.path, self._monitor, self._process = RunFolder(run_dir).monitor_path, None, None
         self._sizes = {"observation_dim": data["observation"].shape[-1], "action_dim": data["action"].shape[-1]}
         if not background:
             self._monitor = make_monitor(cfg, data, run_dir)
@@ -129,7 +130,7 @@ class MonitorFit:
         self._errors = context.SimpleQueue()
         # A daemon: a run that stops early (an error, Ctrl-C) does not wait for the fit.
         self._process = context.Process(target=_fit_monitor_in_child, daemon=True, args=(
-            OmegaConf.to_container(cfg, resolve=True), data.cpu(), str(run_dir), self._errors, os.getpid()))
+            OmegaConf.to_container(cfg, resolve=True), data.cpu(), os.fspath(run_dir), self._errors, os.getpid()))
         self._process.start()
 
     def failed(self) -> bool:
