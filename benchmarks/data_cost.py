@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.harness import invocation, machine_description, recorded_cpu, REPO, RECIPE, write_result
+from torchrl_tels.run_folder import RunFolder
 
 OUT = REPO / "benchmarks" / "results" / "data_cost"
 TASK = "mujoco/halfcheetah/medium-v0"
@@ -86,7 +87,7 @@ def run_size(size: int, steps: int, threads: int) -> dict:
         elapsed = time.perf_counter() - start
         if os.waitstatus_to_exitcode(status) != 0:
             raise SystemExit(f"error: the size-{size} run failed: {proc.stderr.read()[-2000:]}")
-        results = json.loads((run_dir / "results.json").read_text())
+        results = RunFolder(run_dir).read_results()
     return {"size": transitions, "steps": steps, "threads": threads, "elapsed_s": elapsed,
             "peak_memory_gb": usage.ru_maxrss / 1024 ** 2, "wall_time_s": results["wall_time_s"],
             "steps_per_s": results["steps_per_s"], "command": invocation(), "machine": machine_description()}

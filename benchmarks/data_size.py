@@ -25,6 +25,7 @@ from pathlib import Path
 
 from benchmarks.harness import (command_line, invocation, machine_description, REPO, repo_relative, run_recipe,
                                 save_figure, skip_existing, write_result)
+from torchrl_tels.run_folder import RunFolder
 
 SIZES = (1000, 2500, 5000, 10_000, 25_000, 50_000, 100_000)
 METHODS = ("tels", "bc", "td3bc", "iql")
@@ -51,7 +52,7 @@ def run_one(method: str, size: int, seed: int, force: bool) -> None:
             cmd = run_recipe([f"dataset.name={source()}", f"dataset.size={size}", f"dataset.task={TASK}",
                               f"seed={seed}", f"run_dir={run_dir}", "budget=study", "eval.batched=true",
                               "logger.wandb_mode=disabled"], threads=1, quiet=True)
-            result = json.loads((run_dir / "results.json").read_text())
+            result = RunFolder(run_dir).read_results()
         result["command"] = command_line(cmd)
     else:
         from benchmarks.baselines import train_baseline

@@ -13,7 +13,6 @@ two (float rounding of the batched product, amplified by the body's dynamics).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
@@ -24,14 +23,16 @@ import torch
 from benchmarks.harness import run_recipe
 from torchrl_tels.envs import evaluate_policy, make_eval_env, make_eval_envs
 from torchrl_tels.modules import load_tels_actor, TSIDM
+from torchrl_tels.run_folder import RunFolder
 
 
 def load_actor(run_dir: Path):
-    results = json.loads((run_dir / "results.json").read_text())
+    folder = RunFolder(run_dir)
+    results = folder.read_results()
     env = make_eval_env(results["env"])
-    tsidm = TSIDM.load(run_dir / "tsidm.pt", observation_dim=env.observation_spec["observation"].shape[-1],
+    tsidm = TSIDM.load(folder.tsidm_path, observation_dim=env.observation_spec["observation"].shape[-1],
                        action_dim=env.action_spec.shape[-1])
-    return load_tels_actor(run_dir / "policy.pt", tsidm, env.action_spec).eval(), results["env"]
+    return load_tels_actor(folder.policy_path, tsidm, env.action_spec).eval(), results["env"]
 
 
 def main():

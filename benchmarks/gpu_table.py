@@ -14,6 +14,8 @@ import json
 import re
 from pathlib import Path
 
+from torchrl_tels.run_folder import RunFolder
+
 # tqdm's bar: "<desc>: 41%|...| 14612/36000 [02:46<04:10, 85.49it/s, ...]" (elapsed as mm:ss or h:mm:ss)
 PROGRESS = re.compile(r"(?P<stage>stage [12])\b[^|\n]*?:\s+\d+%\|[^|]*\|\s*(?P<n>\d+)/(?P<total>\d+) "
                       r"\[(?P<elapsed>[\d:]+)<")
@@ -128,9 +130,9 @@ def render(folder: Path) -> str:
         progress = stage_progress(text)
         evaluations = evaluation_seconds(text)
         score = "did not finish"
-        results = folder / name / "results.json"
-        if results.exists():
-            r = json.loads(results.read_text())
+        run = RunFolder(folder / name)
+        if run.is_finished:
+            r = run.read_results()
             score = f"{r.get('final_normalized_score_mean', r.get('final_score_mean', float('nan'))):.1f}"
         elif name.startswith("shrink"):
             score = "(stage 1 only)"

@@ -19,17 +19,18 @@ from pathlib import Path
 import torch
 
 from benchmarks.harness import REPO, repo_relative, run_recipe, save_figure
+from torchrl_tels.run_folder import RunFolder
 
 VARIANTS = {"paper": ["domain=paper"], "preset": [], "ae": ["tsidm.ablation=ae"]}
 
 
 def train_tsidm(dataset: str, variant: str, steps: int, seed: int, threads: int) -> Path:
     run_dir = REPO / "runs" / "latent_pictures" / dataset / f"{variant}_{steps}steps_seed{seed}"
-    if not (run_dir / "tsidm.pt").exists():
+    if not RunFolder(run_dir).tsidm_path.exists():
         run_recipe([f"dataset.name={dataset}", f"seed={seed}", f"run_dir={run_dir}", "resume=true",
                     f"tsidm.steps={steps}", "policy.steps=1", "eval.interval=1", "eval.episodes=1",
                     "eval.max_steps=1", "logger.wandb_mode=disabled", *VARIANTS[variant]], threads, quiet=True)
-    return run_dir / "tsidm.pt"
+    return RunFolder(run_dir).tsidm_path
 
 
 def episode_features(data) -> tuple[torch.Tensor, torch.Tensor]:

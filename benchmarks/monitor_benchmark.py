@@ -62,6 +62,7 @@ from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes, spl
 from torchrl_tels.envs import DeploymentMonitor
 from torchrl_tels.envs.monitor import DEFAULT_COMBINATION, running_mean, SCORE_TERMS, steps_into_trajectory
 from torchrl_tels.trainer import fit_tsidm, RunState
+from torchrl_tels.run_folder import RunFolder
 
 RESULTS = REPO / "benchmarks" / "results" / "monitor"
 TABLE = RESULTS / "MONITOR.md"
@@ -189,7 +190,8 @@ def policy_actor(run_dir: Path, env_id: str):
     from torchrl_tels.modules import load_tels_actor, TSIDM
 
     spec = make_eval_env(env_id).action_spec
-    program = PolicyProgram(load_tels_actor(run_dir / "policy.pt", TSIDM.load(run_dir / "tsidm.pt"), spec))
+    folder = RunFolder(run_dir)
+    program = PolicyProgram(load_tels_actor(folder.policy_path, TSIDM.load(folder.tsidm_path), spec))
 
     def act(observation):
         with torch.no_grad():
@@ -202,7 +204,7 @@ def ensure_policy(runs: Path, seed: int, threads: int) -> tuple[Path, str]:
     run_dir = runs / f"hopper-medium_seed{seed}"
     overrides = [f"seed={seed}", f"threads={threads}", f"run_dir={run_dir}", "precision=auto"]
     command = command_line(["python", "recipes/tels_offline.py", *overrides])
-    if not (run_dir / "results.json").is_file():
+    if not RunFolder(run_dir).is_finished:
         run_recipe(overrides, threads)
     return run_dir, command
 
@@ -368,7 +370,7 @@ def run(args) -> dict:
         run_dir, command = ensure_policy(args.policy_runs, args.seed, args.threads)
         import json
 
-        record = json.loads((run_dir / "results.json").read_text())
+        record = RunFolder(run_dir).read_results()
         policy = {"command": command, "final_normalized_score_mean": record["final_normalized_score_mean"]}
         act = policy_actor(run_dir, setting["env"])
         start = time.perf_counter()

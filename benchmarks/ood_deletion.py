@@ -62,6 +62,7 @@ from torchrl_tels.data import delete_regions, load_dataset, points_in_boxes
 from torchrl_tels.envs import get_task, make_eval_env, rollout_episodes
 from torchrl_tels.modules import load_tels_actor
 from torchrl_tels.training import write_text
+from torchrl_tels.run_folder import RunFolder
 
 DEFAULT_RESULTS = REPO / "benchmarks" / "results" / "ood"
 DEFAULT_WORK = REPO / "runs" / "ood"
@@ -174,8 +175,9 @@ def train_tels(setup: Setup, boxes, ratio: float, seed: int, args):
                  "eval.episodes=1", "eval.last_n=1", f"checkpoint.interval={min(args.steps, 5000)}"]
     run_recipe(overrides, args.threads)
     env = make_eval_env(get_task(setup.task).env_id)
-    actor = load_tels_actor(run_dir / "policy.pt", run_dir / "tsidm.pt", env.action_spec_unbatched)
-    results = json.loads((run_dir / "results.json").read_text())
+    folder = RunFolder(run_dir)
+    actor = load_tels_actor(folder.policy_path, folder.tsidm_path, env.action_spec_unbatched)
+    results = folder.read_results()
     return actor, env, {"run_dir": str(run_dir), "recipe_overrides": overrides,
                         "wall_time_s": results.get("wall_time_s"), "steps_per_s": results.get("steps_per_s")}
 

@@ -13,7 +13,6 @@ A projection is not a measurement of the full run: BENCHMARKS.md says which is w
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import tempfile
@@ -21,6 +20,7 @@ from pathlib import Path
 
 from benchmarks.harness import run_recipe
 from torchrl_tels.config import native_bf16_supported
+from torchrl_tels.run_folder import RunFolder
 
 
 def run_once(precision: str, threads: int, tsidm_steps: int, policy_steps: int, episodes: int) -> dict:
@@ -31,7 +31,7 @@ def run_once(precision: str, threads: int, tsidm_steps: int, policy_steps: int, 
             f"eval.interval={policy_steps}", f"eval.episodes={episodes}", "eval.last_n=1",
             f"checkpoint.interval={10 * policy_steps}", "logger.wandb_mode=disabled",
         ], threads, quiet=True)
-        results = json.loads((Path(tmp) / "run" / "results.json").read_text())
+        results = RunFolder(Path(tmp) / "run").read_results()
     evaluation = results["evaluations"][-1]
     return {
         "tsidm_steps_per_s": results["steps_per_s"]["tsidm"],

@@ -15,13 +15,13 @@ each gives. The budget is ``budget=smoke`` unless ``--overrides`` says otherwise
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 from benchmarks.harness import machine_description, run_recipe
+from torchrl_tels.run_folder import RunFolder
 
 
 def training_seconds(results: dict) -> float:
@@ -33,7 +33,7 @@ def one_process(folder: Path, seeds: int, overrides: list[str], threads: int) ->
     start = time.perf_counter()
     run_recipe([f"run_dir={folder}", f"seeds=[{','.join(map(str, range(seeds)))}]", *overrides], threads, quiet=True)
     wall = time.perf_counter() - start
-    return wall, training_seconds(json.loads((folder / "results.json").read_text()))
+    return wall, training_seconds(RunFolder(folder).read_results())
 
 
 def one_process_per_seed(folder: Path, seeds: int, overrides: list[str], threads: int) -> tuple[float, float]:
@@ -42,7 +42,7 @@ def one_process_per_seed(folder: Path, seeds: int, overrides: list[str], threads
         start = time.perf_counter()
         run_recipe([f"run_dir={folder / f'seed{seed}'}", f"seed={seed}", *overrides], threads, quiet=True)
         wall += time.perf_counter() - start
-        training += training_seconds(json.loads((folder / f"seed{seed}" / "results.json").read_text()))
+        training += training_seconds(RunFolder(folder).seed(seed).read_results())
     return wall, training
 
 

@@ -25,10 +25,8 @@ seeds' stacked parameters (``torchrl_tels.seeds``). Each seed's outputs land in
 from __future__ import annotations
 
 import copy
-import json
 import os
 import sys
-from pathlib import Path
 
 # Idle OpenMP threads sleep instead of spinning, so a run sharing the machine with another
 # process does not collapse (BENCHMARKS.md, "CPU threads"). OpenMP reads this once, when
@@ -52,10 +50,10 @@ from torchrl_tels.config import (  # noqa: E402
 from torchrl_tels.envs import make_eval_envs  # noqa: E402
 from torchrl_tels.errors import TelsError  # noqa: E402
 from torchrl_tels.modules import save_guide_policy, TSIDM  # noqa: E402
+from torchrl_tels.monitor import check_monitor_data, make_monitor, monitor_in_background, MonitorFit  # noqa: E402
 from torchrl_tels.seeds import SeedRNG  # noqa: E402
-from torchrl_tels.training import write_text  # noqa: E402
 from torchrl_tels.record import RunLogger, write_results, write_seeds_summary  # noqa: E402
-from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, RunFolderClaim  # noqa: E402
+from torchrl_tels.run_folder import RunFolder, RunFolderClaim  # noqa: E402
 from torchrl_tels.trainer import (  # noqa: E402
     after_training_diagnostics,
     check_same_stage1_length,
@@ -63,12 +61,8 @@ from torchrl_tels.trainer import (  # noqa: E402
     evaluation_scalars,
     fit_tsidm_seeds,
     load_pretrained_tsidm,
-    check_monitor_data,
     make_data,
-    make_monitor,
     make_stage1,
-    monitor_in_background,
-    MonitorFit,
     make_stage2,
     print_plan,
     RunState,
@@ -114,7 +108,7 @@ def use_sweep_job_dir(cfg: DictConfig) -> None:
         cfg.run_dir = hydra_cfg.runtime.output_dir
 
 
-def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
+def start_run(cfg: DictConfig) -> tuple[RunFolder, RunState]:
     """Checks the config (before ``run_dir`` exists), sets threads and the global seed, loads the run's state."""
     validate_config(cfg)
     with open_dict(cfg):  # the precision the run computes in, as config.yaml and resume=true see it
@@ -122,28 +116,28 @@ def start_run(cfg: DictConfig) -> tuple[Path, RunState]:
     check_precision_supported(cfg.precision, cfg.device)
     torch.set_num_threads(resolve_threads(cfg.threads))
     torch.manual_seed(cfg.seed)
-    run_dir = check_folder_creatable(cfg.run_dir)
-    check_run_dir_free(run_dir, resume=cfg.resume, overwrite=cfg.overwrite)
-    run = RunState.start(cfg, run_dir / "state.pt")
-    if cfg.resume and (run_dir / "state.pt").exists() and run.stage != "done":
-        print(f"resuming {run_dir} at {run.stage} step {run.step}")
+    run_dir = RunFolder(check_folder_creatable(cfg.run_dir))
+    run_dir.check_free(resume=cfg.resume, overwrite=cfg.overwrite)
+    run = RunState.start(cfg, run_dir.state_path)
+    if cfg.resume and run_dir.state_path.exists() and run.stage != "done":
+        print(f"resuming {run_dir.path} at {run.stage} step {run.step}")
     return run_dir, run
 
 
-def open_run_dir(cfg: DictConfig, run: RunState, run_dir: Path) -> RunLogger:
+def open_run_dir(cfg: DictConfig, run: RunState, run_dir: RunFolder) -> RunLogger:
     """Claims ``run_dir`` (created if need be) and writes the resolved config; the run's logger (CSV, wandb)."""
-    CLAIMS.append(claim_run_dir(run_dir, resume=cfg.resume, overwrite=cfg.overwrite))
-    write_text(run_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
-    logger = RunLogger(run_dir, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
+    CLAIMS.append(run_dir.claim(resume=cfg.resume, overwrite=cfg.overwrite))
+    run_dir.write_config(OmegaConf.to_yaml(cfg, resolve=True))
+    logger = RunLogger(run_dir.path, cfg.logger.exp_name, wandb_mode=cfg.logger.wandb_mode, project=cfg.logger.project,
                        config=OmegaConf.to_container(cfg, resolve=True), wandb_id=run.wandb_id)
     run.wandb_id = logger.wandb_id
     return logger
 
 
-def finished_results(run: RunState, run_dir: Path) -> dict | None:
-    if run.stage == "done" and (run_dir / "results.json").exists():
-        print(f"{run_dir} already finished; nothing to resume")
-        return json.loads((run_dir / "results.json").read_text())
+def finished_results(run: RunState, run_dir: RunFolder) -> dict | None:
+    if run.stage == "done" and run_dir.is_finished:
+        print(f"{run_dir.path} already finished; nothing to resume")
+        return run_dir.read_results()
     return None
 
 
@@ -201,28 +195,28 @@ def train(cfg: DictConfig) -> dict:
             if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < cfg.policy.steps:
                 stage2.check_finite()
                 run.step = step + 1
-                run.save(run_dir / "state.pt", **{k: m.state_dict() for k, m in stage2.modules().items()})
+                run.save(run_dir.state_path, **{k: m.state_dict() for k, m in stage2.modules().items()})
 
     stage2.check_finite()
-    save_guide_policy(run_dir / "policy.pt", stage2.guide, latent_dim=tsidm.latent_state_dim, mode=cfg.guide.mode,
+    save_guide_policy(run_dir.policy_path, stage2.guide, latent_dim=tsidm.latent_state_dim, mode=cfg.guide.mode,
                       num_cells=cfg.guide.num_cells, actor_options=stage2.actor_options,
-                      metadata={"results": str(run_dir / "results.json")})
+                      metadata={"results": str(run_dir.results_path)})
     # Stored with the score: a low score with a low inverse error points at the guide, a high one at the TS-IDM.
     with run.time("diagnostics_s"):
         diagnostics = after_training_diagnostics(cfg, stage2, data, task)
     results = write_results(cfg, run, task, tsidm.metadata.get("beta"), diagnostics, run_dir,
                             tsidm_steps=tsidm_steps(cfg, len(data)), policy_steps=cfg.policy.steps - start)
     run.stage, run.step = "done", cfg.policy.steps
-    run.save(run_dir / "state.pt")
+    run.save(run_dir.state_path)
     logger.close()
     return results
 
 
-def seed_config(cfg: DictConfig, seed: int, run_dir: Path) -> DictConfig:
+def seed_config(cfg: DictConfig, seed: int, run_dir: RunFolder) -> DictConfig:
     """The config of one seed of a ``seeds`` run: what its own single-seed run would get."""
     seed_cfg = copy.deepcopy(cfg)
     with open_dict(seed_cfg):
-        seed_cfg.seed, seed_cfg.seeds, seed_cfg.run_dir = seed, None, str(run_dir / f"seed{seed}")
+        seed_cfg.seed, seed_cfg.seeds, seed_cfg.run_dir = seed, None, str(run_dir.seed(seed).path)
     return seed_cfg
 
 
@@ -244,30 +238,30 @@ def train_seeds(cfg: DictConfig) -> dict:
     seed_runs = ([RunState.from_seed_record(r) for r in run.per_seed] if run.per_seed
                  else [RunState(config={}) for _ in seeds])
     logger = open_run_dir(cfg, run, run_dir)
-    for c in configs:
-        Path(c.run_dir).mkdir(parents=True, exist_ok=True)
-        write_text(Path(c.run_dir) / "config.yaml", OmegaConf.to_yaml(c, resolve=True))
-    monitors = [make_monitor(c, data, Path(c.run_dir)) for c, data in zip(configs, datas)]
+    seed_dirs = [run_dir.seed(seed) for seed in seeds]
+    for c, seed_dir in zip(configs, seed_dirs):
+        seed_dir.write_config(OmegaConf.to_yaml(c, resolve=True))
+    monitors = [make_monitor(c, data, seed_dir) for c, data, seed_dir in zip(configs, datas, seed_dirs)]
 
     def save(**modules):
         run.per_seed = [r.seed_record() for r in seed_runs]
-        run.save(run_dir / "state.pt", **modules)
+        run.save(run_dir.state_path, **modules)
 
     # Algorithm 1, lines 1-4, for all seeds at once.
     if pretrained is not None:
-        tsidms = [adopt_pretrained_tsidm(cfg, pretrained, run, [c.run_dir for c in configs])] * len(seeds)
+        tsidms = [adopt_pretrained_tsidm(cfg, pretrained, run, seed_dirs)] * len(seeds)
     elif run.stage != "tsidm":
-        tsidms = [TSIDM.load(Path(c.run_dir) / "tsidm.pt", observation_dim=data["observation"].shape[-1],
-                             action_dim=data["action"].shape[-1]) for c, data in zip(configs, datas)]
+        tsidms = [TSIDM.load(seed_dir.tsidm_path, observation_dim=data["observation"].shape[-1],
+                             action_dim=data["action"].shape[-1]) for seed_dir, data in zip(seed_dirs, datas)]
     else:
         with run.time("tsidm_s"):
             trained = fit_tsidm_seeds(cfg, list(datas), seeds, run, run_dir, logger)
         tsidms = []
-        for c, seed_run, (tsidm, final, history) in zip(configs, seed_runs, trained):
+        for seed_dir, seed_run, (tsidm, final, history) in zip(seed_dirs, seed_runs, trained):
             seed_run.beta_results, seed_run.tsidm_history = [{"beta": float(cfg.tsidm.beta), **final}], history
             tsidm.metadata = {"beta": float(cfg.tsidm.beta), "dataset": str(cfg.dataset.name),
                               "beta_results": seed_run.beta_results}
-            tsidm.save(Path(c.run_dir) / "tsidm.pt", metadata=tsidm.metadata)
+            tsidm.save(seed_dir.tsidm_path, metadata=tsidm.metadata)
             tsidms.append(tsidm)
         run.stage, run.step = "policy", 0
         save()
@@ -322,15 +316,16 @@ def train_seeds(cfg: DictConfig) -> dict:
     stage2.check_finite()
     stage2.write_back()
     results = []
-    for k, (c, data, stage, seed_run, tsidm) in enumerate(zip(configs, datas, stages, seed_runs, tsidms)):
+    for k, (c, seed_dir, data, stage, seed_run, tsidm) in enumerate(
+            zip(configs, seed_dirs, datas, stages, seed_runs, tsidms)):
         seed_run.wall.update({key: run.wall.get(key, 0.0) for key in ("policy_s", "eval_s")})
-        save_guide_policy(Path(c.run_dir) / "policy.pt", stage.guide, latent_dim=tsidm.latent_state_dim,
+        save_guide_policy(seed_dir.policy_path, stage.guide, latent_dim=tsidm.latent_state_dim,
                           mode=cfg.guide.mode, num_cells=cfg.guide.num_cells, actor_options=stage.actor_options,
-                          metadata={"results": str(Path(c.run_dir) / "results.json")})
+                          metadata={"results": str(seed_dir.results_path)})
         with rng.use(k):  # an actor acting with dropout draws from its seed's own stream
             diagnostics = after_training_diagnostics(c, stage, data, task)
         results.append(write_results(c, seed_run, task, tsidm.metadata.get("beta"), diagnostics,
-                                     Path(c.run_dir), tsidm_steps=tsidm_steps(c, len(data)),
+                                     seed_dir, tsidm_steps=tsidm_steps(c, len(data)),
                                      policy_steps=cfg.policy.steps - start))
     summary = write_seeds_summary(run_dir, seeds, results, run.wall)
     run.stage, run.step = "done", cfg.policy.steps

@@ -33,7 +33,6 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
-import yaml
 from tensordict import TensorDict
 from torchrl.modules import MLP
 
@@ -42,6 +41,7 @@ from torchrl_tels.data import load_dataset, subset_dataset
 from torchrl_tels.diagnostics import action_chain_statistics
 from torchrl_tels.modules import TSIDM, load_tels_actor
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY
+from torchrl_tels.run_folder import RunFolder
 
 
 def fit_bc(observation: torch.Tensor, action: torch.Tensor, steps: int, seed: int, apply_to: torch.Tensor) -> torch.Tensor:
@@ -89,12 +89,13 @@ def _masked_mse(prediction: torch.Tensor, action: torch.Tensor, mask: torch.Tens
 
 
 def action_errors(run_dir: Path, bc_steps: int, seed: int) -> dict:
-    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    folder = RunFolder(run_dir)
+    config = folder.read_config()
     data = load_dataset(config["dataset"]["name"])
     train = training_rows(data, config["dataset"], config["seed"])
     observation, next_observation, action = data["observation"], data["next", "observation"], data["action"]
-    tsidm = TSIDM.load(run_dir / "tsidm.pt").eval()
-    actor = load_tels_actor(run_dir / "policy.pt", tsidm)  # no action spec: clipped below, as the env's [-1, 1]
+    tsidm = TSIDM.load(folder.tsidm_path).eval()
+    actor = load_tels_actor(folder.policy_path, tsidm)  # no action spec: clipped below, as the env's [-1, 1]
     with torch.no_grad():
         out = actor(TensorDict({"observation": observation}, batch_size=observation.shape[:1]))
         z, proposal = out[LATENT_KEY], out[GUIDE_KEY]
@@ -151,9 +152,8 @@ def main(argv=None) -> None:
     out = REPO / "study" / "results" / "action_error" / f"{args.name}.json"
     if skip_existing(out, args.force):
         return
-    for required in ("config.yaml", "tsidm.pt", "policy.pt"):
-        if not (args.run_dir / required).exists():
-            raise SystemExit(f"error: {args.run_dir / required} is missing: pass a finished run folder")
+    for required in RunFolder(args.run_dir).missing((RunFolder.CONFIG, RunFolder.TSIDM, RunFolder.POLICY))[:1]:
+        raise SystemExit(f"error: {args.run_dir / required} is missing: pass a finished run folder")
     record = action_errors(args.run_dir, args.bc_steps, args.seed)
     record.update(run_dir=args.run_dir, command=invocation(),
                   date=datetime.now(timezone.utc).isoformat(timespec="seconds"),

@@ -28,6 +28,7 @@ from benchmarks.harness import invocation, machine_description, REPO, skip_exist
 from torchrl_tels.checkpoint import file_sha256
 from torchrl_tels.envs import evaluate_policy, get_task, make_eval_env, normalized_score
 from torchrl_tels.modules import load_tels_actor
+from torchrl_tels.run_folder import RunFolder
 
 VARIANTS = {
     "eq11": {"reencode_proposal": False, "inverse_dropout": False},  # Eq. (11) as written: the default actor
@@ -56,18 +57,19 @@ def main(argv=None) -> None:
         if skip_existing(out, args.force):
             continue
         run_dir = args.work_dir / args.runs / args.task / f"seed{seed}"
-        if not (run_dir / "policy.pt").exists():
+        folder = RunFolder(run_dir)
+        if not folder.policy_path.exists():
             raise SystemExit(f"no finished TELS run in {run_dir}: run python -m benchmarks.run_grid --method tels first")
         env = make_eval_env(task.env_id)  # as the recipe evaluates
         record = {"task": args.task, "seed": seed, "episodes": args.episodes, "run_dir": run_dir,
-                  "policy_sha256": file_sha256(run_dir / "policy.pt"), "tsidm_sha256": file_sha256(run_dir / "tsidm.pt"),
+                  "policy_sha256": file_sha256(folder.policy_path), "tsidm_sha256": file_sha256(folder.tsidm_path),
                   "command": invocation(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                   "machine": {**machine_description(), "threads": args.threads}, "variants": {}}
         for name, options in VARIANTS.items():
             start = time.perf_counter()
             torch.manual_seed(seed)  # the dropout masks
             # Loaded after seeding, as when these results were made: building the TS-IDM draws from the RNG.
-            actor = load_tels_actor(run_dir / "policy.pt", run_dir / "tsidm.pt", env.action_spec, **options)
+            actor = load_tels_actor(folder.policy_path, folder.tsidm_path, env.action_spec, **options)
             returns = evaluate_policy(actor, env, args.episodes, seed=2_000_000 + 1000 * seed,
                                       max_steps=task.max_episode_steps)
             scores = [normalized_score(task, r) for r in returns]

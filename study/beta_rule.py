@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
+from torchrl_tels.run_folder import RunFolder
 
 OUT = REPO / "study" / "results" / "beta_rule"
 TSIDM_STEPS = 3000
@@ -62,13 +63,13 @@ def record(task: str, seed: int, beta: float, threads: int, force: bool = False)
     run_dir = run_dir_for(task, seed, beta)
     scalars = run_dir / "csv" / "scalars" / "tsidm"
     command = None
-    if not (scalars / "ell_total.csv").exists() or not (run_dir / "results.json").exists():
+    if not (scalars / "ell_total.csv").exists() or not RunFolder(run_dir).is_finished:
         # A one-step stage 2 with one episode: the recipe only needs to finish; nothing of it is read.
         command = run_recipe([
             f"dataset.name={task}", f"seed={seed}", f"run_dir={run_dir}", "resume=true", "logger.wandb_mode=disabled",
             f"tsidm.steps={TSIDM_STEPS}", f"tsidm.beta={beta:g}",
             "policy.steps=1", "eval.interval=1", "eval.episodes=1", "eval.last_n=1"], threads)
-    recorded_beta = json.loads((run_dir / "results.json").read_text())["beta"]
+    recorded_beta = RunFolder(run_dir).read_results()["beta"]
     if abs(recorded_beta - beta) > 1e-12:
         raise ValueError(f"{run_dir} trained stage 1 with beta={recorded_beta}, not {beta}")
     terms = {name: tail_mean(scalars / f"{name}.csv") for name in TERMS}

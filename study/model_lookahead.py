@@ -32,6 +32,7 @@ from study.model_selection import (CANDIDATES, HORIZON_OPTION, LatentActionChoic
                                    own_action, read_candidates, row_spearman)
 from study.proposal_cap import reading_main, RUN_FILES
 from study.value_delivery import HORIZON
+from torchrl_tels.run_folder import RunFolder
 
 RESULTS = REPO / "study" / "results" / "model_lookahead"
 COMMAND = "python -m study.model_lookahead"
@@ -98,7 +99,7 @@ def _summary(record: dict) -> str:
 
 def main(argv=None) -> None:
     reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=model_lookahead,
-                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"), options=HORIZON_OPTION)
+                 table=table, summary=_summary, required=(*RUN_FILES, RunFolder.STATE), options=HORIZON_OPTION)
 
 
 if __name__ == "__main__":

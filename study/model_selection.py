@@ -63,6 +63,7 @@ from study.value_delivery import (HORIZON, retrain_value, rollout_returns, run_c
                                   start_rows, VALUE_CACHE)
 from torchrl_tels.envs import evaluate_policy, normalized_score
 from torchrl_tels.modules import TSIDM
+from torchrl_tels.run_folder import RunFolder
 from torchrl_tels.trainer import make_data
 
 RESULTS = REPO / "study" / "results" / "model_selection"
@@ -351,7 +352,7 @@ def _summary(record: dict) -> str:
 
 def main(argv=None) -> None:
     reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=model_selection,
-                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"), options=HORIZON_OPTION)
+                 table=table, summary=_summary, required=(*RUN_FILES, RunFolder.STATE), options=HORIZON_OPTION)
 
 
 if __name__ == "__main__":

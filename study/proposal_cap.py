@@ -12,14 +12,12 @@ Writes ``study/results/proposal_cap/<name>.json`` (skipped if it exists unless `
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable
 
 import torch
-import yaml
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
@@ -33,10 +31,11 @@ from torchrl_tels.diagnostics import latent_statistics
 from torchrl_tels.envs import evaluate_policy, get_task, make_eval_envs, normalized_score, Task
 from torchrl_tels.modules import load_tels_actor, make_tels_actor, TSIDM
 from torchrl_tels.modules.actors import GUIDE_KEY, LATENT_KEY, POLICY_FORMAT
+from torchrl_tels.run_folder import RunFolder
 
 EPISODES = 10
 #: What a finished recipe run folder holds that these readings load.
-RUN_FILES = ("config.yaml", "results.json", "tsidm.pt", "policy.pt")
+RUN_FILES = (RunFolder.CONFIG, RunFolder.RESULTS, RunFolder.TSIDM, RunFolder.POLICY)
 
 
 class CappedStep(nn.Module):
@@ -70,23 +69,22 @@ class FinishedRun:
 
 def load_finished_run(run_dir: Path, episodes: int = EPISODES) -> FinishedRun:
     """Loads ``run_dir`` (``config.yaml``, ``tsidm.pt``, ``policy.pt``, ``results.json``) with ``episodes`` envs."""
-    results = json.loads((run_dir / "results.json").read_text())
-    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    folder = RunFolder(run_dir)
+    results, config = folder.read_results(), folder.read_config()
     data = load_dataset(config["dataset"]["name"])
     data, task = data[training_rows(data, config["dataset"], config["seed"])], get_task(results["task"])
-    tsidm = TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
+    tsidm = TSIDM.load(folder.tsidm_path, observation_dim=data["observation"].shape[-1],
                        action_dim=data["action"].shape[-1]).eval()
     data_step = latent_statistics(tsidm, data["observation"], data["next", "observation"])["latent_step_rms"]
     env = make_eval_envs(task.env_id, episodes)
-    actor = load_tels_actor(run_dir / "policy.pt", tsidm, env.action_spec_unbatched)
+    actor = load_tels_actor(folder.policy_path, tsidm, env.action_spec_unbatched)
     return FinishedRun(results, task, data, tsidm, actor, env, data_step, results["seed"] * 100_000 + 1)
 
 
 def check_finished_run(parser: argparse.ArgumentParser, run_dir: Path, required=RUN_FILES) -> None:
     """Exits through ``parser`` naming the first of ``required`` that ``run_dir`` lacks."""
-    for name in required:
-        if not (run_dir / name).exists():
-            parser.error(f"{run_dir / name} is missing: pass a finished run folder")
+    for name in RunFolder(run_dir).missing(required)[:1]:
+        parser.error(f"{run_dir / name} is missing: pass a finished run folder")
 
 
 def reading_main(argv, *, prog: str, description: str, results: Path, read: Callable[..., dict],
@@ -126,7 +124,7 @@ def reading_main(argv, *, prog: str, description: str, results: Path, read: Call
 
 def capped_scores(run_dir: Path, caps: list[float]) -> dict:
     run = load_finished_run(run_dir)
-    payload = load_checkpoint(run_dir / "policy.pt", POLICY_FORMAT)
+    payload = load_checkpoint(RunFolder(run_dir).policy_path, POLICY_FORMAT)
     if payload["mode"] != "deterministic":
         raise SystemExit(f"error: {run_dir} has a {payload['mode']} guide; the cap applies to a deterministic one")
     guide, options = run.actor[1].module, payload.get("actor_options", {})

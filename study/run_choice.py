@@ -15,12 +15,12 @@ optim.steps=5000 eval.interval=500 eval.episodes=10``, which ``budget=study`` no
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 from omegaconf import OmegaConf
 
 from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
+from torchrl_tels.run_folder import RunFolder
 
 RESULTS = REPO / "study" / "results"
 #: What the recorded arms of a budget ran with beyond the budget group itself: at the study budget,
@@ -47,10 +47,11 @@ def main():
     protocol = [pin for budget in args.budget for pin in PROTOCOL.get(budget, [])]
     cmd = run_recipe([f"dataset.name={args.task}", f"seed={args.seed}", f"run_dir={run_dir}", "resume=true",
                       "logger.wandb_mode=disabled", *args.budget, *protocol, *args.override], args.threads)
-    results = json.loads((run_dir / "results.json").read_text())
+    folder = RunFolder(run_dir)
+    results = folder.read_results()
     # The preset's choices are not in --override, so a later change of the preset would otherwise
     # leave no trace in the JSON (results.json already records the beta used).
-    config = OmegaConf.load(run_dir / "config.yaml")
+    config = OmegaConf.load(folder.config_path)
     results.update(alpha=float(config.guide.alpha), reencode_proposal=bool(config.guide.reencode_proposal))
     results.update(variant=args.name, overrides=args.override, budget=args.budget, command=command_line(cmd),
                    date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, machine=machine_description())

@@ -61,6 +61,7 @@ from study.proposal_cap import load_finished_run, reading_main, RUN_FILES
 from study.realization import set_state_from_observation, step_from_observations
 from torchrl_tels.checkpoint import atomic_save
 from torchrl_tels.modules.actors import GUIDE_KEY
+from torchrl_tels.run_folder import RunFolder
 from torchrl_tels.trainer import autocast, make_data, make_stage2
 from torchrl_tels.training import load_training_state
 
@@ -162,7 +163,7 @@ def run_config(run_dir: Path):
     trained take their defaults, which are what the code did before they existed."""
     with initialize_config_dir(str(REPO / "recipes" / "config"), version_base="1.3"):
         defaults = compose("config")
-    cfg = OmegaConf.merge(defaults, OmegaConf.load(run_dir / "config.yaml"))
+    cfg = OmegaConf.merge(defaults, OmegaConf.load(RunFolder(run_dir).config_path))
     if cfg.dataset.size and cfg.dataset.subset != "trajectories":
         raise SystemExit(f"error: {run_dir} trained on a subset of single transitions (dataset.subset="
                          f"{cfg.dataset.subset}): its rows are not whole episodes, so returns cannot be read")
@@ -233,7 +234,7 @@ def start_rows(data) -> torch.Tensor:
 
 def loss_match(run_dir: Path, losses: dict[int, float]) -> dict[str, float]:
     """The retrained V's logged losses against the run's own: the largest relative difference and where."""
-    logged = dict(load_training_state(run_dir / "state.pt")["policy_history"]["value/loss_value"])
+    logged = dict(load_training_state(RunFolder(run_dir).state_path)["policy_history"]["value/loss_value"])
     shared = sorted(set(logged) & set(losses))
     gaps = [abs(losses[s] - logged[s]) / max(abs(logged[s]), 1e-12) for s in shared]
     worst = max(range(len(shared)), key=gaps.__getitem__)
@@ -362,7 +363,7 @@ def _summary(record: dict) -> str:
 
 def main(argv=None) -> None:
     reading_main(argv, prog=COMMAND, description=__doc__.splitlines()[0], results=RESULTS, read=value_delivery,
-                 table=table, summary=_summary, required=(*RUN_FILES, "state.pt"))
+                 table=table, summary=_summary, required=(*RUN_FILES, RunFolder.STATE))
 
 
 if __name__ == "__main__":

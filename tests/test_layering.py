@@ -13,10 +13,11 @@ PACKAGE = REPO / "torchrl_tels"
 
 #: package -> the torchrl_tels packages it must never import
 FORBIDDEN = {
-    "data": ("envs", "modules", "objectives", "collection", "diagnostics", "training", "config", "record"),
-    "modules": ("objectives", "collection", "training", "config", "record"),
+    "data": ("envs", "modules", "objectives", "collection", "diagnostics", "training", "config", "record", "monitor"),
+    "modules": ("objectives", "collection", "training", "config", "record", "monitor"),
     "objectives": ("collection", "training", "config", "record"),
     "envs": ("objectives", "collection", "training"),
+    "monitor": ("objectives", "collection", "training", "record"),
 }
 
 

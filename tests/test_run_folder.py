@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from torchrl_tels.errors import ConfigError
-from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, LOCK_NAME
+from torchrl_tels.errors import CheckpointError, ConfigError
+from torchrl_tels.run_folder import check_run_dir_free, claim_run_dir, LOCK_NAME, RunFolder
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RECIPE = REPO_ROOT / "recipes" / "tels_offline.py"
@@ -62,6 +62,30 @@ def test_claim_is_exclusive_and_released(tmp_path):
     (tmp_path / "empty").mkdir()
     check_run_dir_free(tmp_path / "empty", resume=False, overwrite=False)  # empty (as a sweep job's): free
     assert [p.name for p in folder.iterdir()] == [LOCK_NAME]
+
+
+def test_run_folder_reads_back_what_a_run_writes(tmp_path):
+    stacked = RunFolder(tmp_path / "stacked")
+    for seed in (0, 1):
+        stacked.seed(seed).write_config(f"seed: {seed}\n")
+    stacked.write_config("seeds: [0, 1]\n")
+    single = RunFolder(tmp_path / "single")
+    single.write_config("seed: 3\n")
+    # a run of several seeds counts as its seeds' folders, not as the folder that aggregates them
+    assert RunFolder.find(tmp_path) == [single, stacked.seed(0), stacked.seed(1)]
+    assert stacked.seed_folders() == [stacked.seed(0), stacked.seed(1)]
+    assert [f.status() for f in RunFolder.find(tmp_path)] == ["unfinished"] * 3
+    with single.claim(resume=True, overwrite=False):
+        assert single.status() == "running"
+    with pytest.raises(CheckpointError, match="has no results.json.*then export"):
+        RunFolder.open_finished(single.path, purpose="export")
+    single.write_results({"seed": 3, "dataset": "d"})
+    assert single.status() == "finished"
+    with pytest.raises(CheckpointError, match="without policy.pt, tsidm.pt"):
+        RunFolder.open_finished(single.path, required=(RunFolder.POLICY, RunFolder.TSIDM))
+    opened = RunFolder.open_finished(single.path)
+    assert opened.read_results() == {"seed": 3, "dataset": "d"} and opened.read_config() == {"seed": 3}
+    assert json.loads((tmp_path / "single" / "results.json").read_text())["seed"] == 3
 
 
 def test_resume_and_overwrite_must_be_booleans():

@@ -218,10 +218,11 @@ def validate_config(cfg) -> None:
 
 
 def monitor_fit_options(settings) -> dict:
-    """The keywords of ``DeploymentMonitor.fit``/``cross_fit`` that a run's ``monitor`` group sets, besides the
-    calibration scheme and the flag quantile."""
-    return {"members": settings.members, "num_cells": tuple(settings.num_cells), "steps": settings.steps,
-            "window": settings.window, "window_quantile": settings.window_quantile}
+    """The keywords of ``DeploymentMonitor.fit``/``cross_fit`` that a run's ``monitor`` group (a config or a
+    plain mapping, as a finished run's ``config.yaml`` reads) sets, besides the calibration scheme and the flag
+    quantile."""
+    return {"members": settings["members"], "num_cells": tuple(settings["num_cells"]), "steps": settings["steps"],
+            "window": settings["window"], "window_quantile": settings["window_quantile"]}
 
 
 def _check_monitor(cfg) -> None:

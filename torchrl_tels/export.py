@@ -35,6 +35,7 @@ from torchrl_tels.envs import make_eval_env, DeploymentMonitor
 from torchrl_tels.envs.monitor import SCORE_KEY
 from torchrl_tels.errors import CheckpointError, MonitorError
 from torchrl_tels.modules import load_tels_actor, TSIDM
+from torchrl_tels.run_folder import RunFolder
 
 __all__ = ["MonitorProgram", "PolicyProgram", "export_run", "onnx_missing"]
 
@@ -91,19 +92,10 @@ def onnx_missing() -> str | None:
     return f"{' and '.join(missing)} not installed" if missing else None
 
 
-def _read_results(run_dir: Path) -> dict:
-    if not run_dir.is_dir():
-        raise CheckpointError(f"{run_dir} is not a folder; pass the run folder of a finished run.")
-    results = run_dir / "results.json"
-    if not results.is_file():
-        raise CheckpointError(f"{run_dir} has no results.json: the run has not finished (or it is not a run "
-                              "folder); finish it with resume=true, then export.")
-    try:
-        payload = json.loads(results.read_text())
-    except (OSError, ValueError) as err:
-        raise CheckpointError(f"cannot read {results}: {err}") from None
-    if not isinstance(payload, dict) or not payload.get("env"):
-        raise CheckpointError(f"{results} does not name the run's environment ('env').")
+def _read_results(folder: RunFolder) -> dict:
+    payload = folder.read_results()
+    if not payload.get("env"):
+        raise CheckpointError(f"{folder.results_path} does not name the run's environment ('env').")
     return payload
 
 
@@ -119,13 +111,11 @@ def _export(module: nn.Module, example: tuple[torch.Tensor, ...]) -> torch.expor
     return torch.export.export(module, example, dynamic_shapes=tuple({0: batch} for _ in example))
 
 
-def fit_monitor(dataset: str, quantile: float, run_dir: Path, observation_dim: int,
+def fit_monitor(dataset: str, quantile: float, folder: RunFolder, observation_dim: int,
                 action_dim: int) -> DeploymentMonitor:
     """A monitor fitted to ``dataset`` with the run's ``monitor`` settings (its ``config.yaml``), cross-fitted.
 
     The sizes and the quantile are checked before the (minutes-long) fit."""
-    from omegaconf import OmegaConf
-
     if not 0.0 < float(quantile) < 1.0:
         raise MonitorError(f"--quantile must lie in (0, 1), got {quantile}.")
     data = load_dataset(dataset)
@@ -133,9 +123,8 @@ def fit_monitor(dataset: str, quantile: float, run_dir: Path, observation_dim: i
         if data[key].shape[-1] != size:
             raise MonitorError(f"{dataset}: its {key}s have size {data[key].shape[-1]}, but the run's environment's "
                                f"have size {size}: it is another task's data.")
-    config = run_dir / "config.yaml"
-    settings = OmegaConf.select(OmegaConf.load(config), "monitor") if config.is_file() else None
-    options = {} if settings is None else {"folds": settings.folds, **monitor_fit_options(settings)}
+    settings = folder.read_config().get("monitor") if folder.config_path.is_file() else None
+    options = {} if settings is None else {"folds": settings["folds"], **monitor_fit_options(settings)}
     monitor = DeploymentMonitor.cross_fit(data, quantile=quantile, **options)
     monitor.metadata["dataset"] = str(dataset)
     return monitor
@@ -161,9 +150,9 @@ def export_run(
     sibling folder and moved into place, so a failure leaves ``out`` as it was (absent, if it was).
     Returns the written paths by file name.
     """
-    run_dir = Path(run_dir)
-    results = _read_results(run_dir)
-    out = Path(out) if out is not None else run_dir / "export"
+    folder = RunFolder.open_finished(run_dir, purpose="export")
+    results = _read_results(folder)
+    out = Path(out) if out is not None else folder.export_path
     if not out.parent.is_dir():
         raise CheckpointError(f"the folder {out.parent} for the export does not exist.")
     if out.exists() and not out.is_dir():
@@ -172,21 +161,21 @@ def export_run(
     env = make_eval_env(results["env"])
     observation_dim = int(env.observation_spec["observation"].shape[-1])
     action_dim = int(env.action_spec.shape[-1])
-    tsidm_path, policy_path = run_dir / "tsidm.pt", run_dir / "policy.pt"
-    tsidm = TSIDM.load(tsidm_path, observation_dim=observation_dim, action_dim=action_dim)
-    actor = load_tels_actor(policy_path, tsidm, env.action_spec)
+    tsidm = TSIDM.load(folder.tsidm_path, observation_dim=observation_dim, action_dim=action_dim)
+    actor = load_tels_actor(folder.policy_path, tsidm, env.action_spec)
 
     monitor, monitor_source = None, None
     if calibrate is not None:
-        monitor = fit_monitor(calibrate, quantile, run_dir, observation_dim, action_dim)
+        monitor = fit_monitor(calibrate, quantile, folder, observation_dim, action_dim)
         monitor_source = str(calibrate)
-    elif (run_dir / "monitor.pt").is_file():
-        monitor = DeploymentMonitor.load(run_dir / "monitor.pt", observation_dim=observation_dim,
+    elif folder.monitor_path.is_file():
+        monitor = DeploymentMonitor.load(folder.monitor_path, observation_dim=observation_dim,
                                          action_dim=action_dim)
-        _check_same_task(monitor, results, run_dir / "monitor.pt")
-        monitor_source = "monitor.pt"
+        _check_same_task(monitor, results, folder.monitor_path)
+        monitor_source = RunFolder.MONITOR
     else:
-        log(f"no calibrated monitor in {run_dir} (monitor.pt) and no --calibrate DATASET: exporting the policy only")
+        log(f"no calibrated monitor in {folder.path} ({RunFolder.MONITOR}) and no --calibrate DATASET: exporting the "
+            "policy only")
 
     observation = tsidm.obs_loc.expand(2, observation_dim).clone()
     programs = {POLICY_FILE: _export(PolicyProgram(actor), (observation,))}
@@ -211,7 +200,7 @@ def export_run(
                    "monitor": "observation, action, next_observation (B, .) float32, recent (B, window) float32, "
                               "count (B, 1) int64 (zeros at an episode's start) -> ood_score (B,), ood (B,) bool, "
                               "ood_window (B,), ood_alarm (B,) bool, recent, count"},
-        "sources": {name: file_sha256(run_dir / name) for name in ("tsidm.pt", "policy.pt")},
+        "sources": {path.name: file_sha256(path) for path in (folder.tsidm_path, folder.policy_path)},
         "monitor": None if monitor is None else {
             "score": monitor.score_key, "combine": list(monitor.combine), "threshold": float(monitor.threshold),
             "quantile": float(monitor.quantile), "window": monitor.window,
@@ -230,7 +219,7 @@ def export_run(
             if want_onnx:
                 torch.onnx.export(program, f=str(staging / Path(name).with_suffix(".onnx")), dynamo=True)
         if calibrate is not None:
-            monitor.save(staging / "monitor.pt", metadata={"dataset": str(calibrate)})
+            monitor.save(staging / RunFolder.MONITOR, metadata={"dataset": str(calibrate)})
         (staging / MANIFEST_FILE).write_text(json.dumps(manifest, indent=2))
         written = sorted(path.name for path in staging.iterdir())
         if not out.exists():

@@ -8,6 +8,8 @@ from typing import Mapping
 
 from torchrl.record.loggers import CSVLogger
 
+from torchrl_tels.run_folder import RunFolder
+
 __all__ = ["RunLogger", "final_success_rate", "second_half_mean", "write_results", "write_seeds_summary"]
 
 WANDB_MODES = ("online", "offline", "disabled")
@@ -126,9 +128,10 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
     """
     import torch
 
-    from torchrl_tels.training import plot_curves, write_json
+    from torchrl_tels.training import plot_curves
 
-    run_dir = Path(run_dir)
+    folder = RunFolder(run_dir)
+    run_dir = folder.path
     evaluations, wall = run.evaluations, run.wall
     last = evaluations[-cfg.eval.last_n:]
     final = torch.tensor([e["score"] for e in last])
@@ -170,7 +173,7 @@ def write_results(cfg, run, task, beta, diagnostics: Mapping, run_dir, *, tsidm_
             if policy_steps else None,
         },
     }
-    write_json(run_dir / "results.json", results)
+    folder.write_results(results)
     plot_curves(run.tsidm_history, run_dir / "tsidm_losses.png",
                 title="TS-IDM training loss per term (unweighted) and latent scale", logy=True)
     plot_curves({k: v for k, v in run.policy_history.items() if "loss" in k or "ratio" in k},
@@ -201,8 +204,7 @@ def write_seeds_summary(run_dir, seeds, results: list, wall: Mapping) -> dict:
     """
     import numpy as np
 
-    from torchrl_tels.training import write_json
-
+    folder = RunFolder(run_dir)
     scores = np.array([r["final_normalized_score_mean"] for r in results])
     total = wall.get("tsidm_s", 0.0) + wall["policy_s"]
     summary = {
@@ -212,12 +214,12 @@ def write_seeds_summary(run_dir, seeds, results: list, wall: Mapping) -> dict:
         "final_scores": {str(seed): float(score) for seed, score in zip(seeds, scores)},
         "final_score_mean": float(scores.mean()),
         "final_score_std": float(scores.std()),
-        "per_seed_results": [str(Path(run_dir) / f"seed{seed}" / "results.json") for seed in seeds],
+        "per_seed_results": [str(folder.seed(seed).results_path) for seed in seeds],
         "wall_time_s": {"tsidm": wall.get("tsidm_s", 0.0), "policy": wall["policy_s"], "eval": wall.get("eval_s", 0.0),
                         "total": total},
         "seed_runs_per_hour": len(seeds) * 3600.0 / total if total else None,
     }
-    write_json(Path(run_dir) / "results.json", summary)
+    folder.write_results(summary)
     print(f"{len(seeds)} seeds: final score {summary['final_score_mean']:.1f} ± {summary['final_score_std']:.1f} "
           f"over seeds; per seed in {run_dir}/seed<k>/")
     return summary

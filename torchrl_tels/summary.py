@@ -10,7 +10,6 @@ bootstrap 95 % interval over the seeds every dataset has (:func:`torchrl_tels.st
 from __future__ import annotations
 
 import csv
-import fcntl
 import io
 import json
 import math
@@ -23,8 +22,8 @@ import numpy as np
 import yaml
 
 from torchrl_tels import stats
-from torchrl_tels.errors import ConfigError
-from torchrl_tels.run_folder import LOCK_NAME
+from torchrl_tels.errors import CheckpointError, ConfigError
+from torchrl_tels.run_folder import RunFolder
 
 __all__ = ["RunRecord", "Summary", "arms", "arms_csv", "collect_runs", "summarize"]
 
@@ -116,21 +115,6 @@ class Summary:
         return path
 
 
-def _status(folder: Path) -> str:
-    if (folder / "results.json").is_file():
-        return "finished"
-    lock = folder / LOCK_NAME
-    if lock.is_file():
-        fd = os.open(lock, os.O_RDONLY)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return "running"
-        finally:
-            os.close(fd)
-    return "unfinished"
-
-
 def collect_runs(folders) -> list[RunRecord]:
     """Every recipe run folder under ``folders`` (each a run folder or a folder holding some), with its status.
 
@@ -140,20 +124,17 @@ def collect_runs(folders) -> list[RunRecord]:
     for top in map(Path, folders):
         if not top.is_dir():
             raise ConfigError(f"{top} is not a folder.")
-        for config in sorted(top.rglob("config.yaml")):
-            folder = config.parent
-            if any(p.name.startswith("seed") and p.is_dir() and (p / "config.yaml").exists() for p in folder.iterdir()):
-                continue  # a stacked-seeds run: its seeds are counted one by one
-            status = _status(folder)
-            record = RunRecord(folder, status)
+        for run in RunFolder.find(top):
+            status = run.status()
+            record = RunRecord(run.path, status)
             if status == "finished":
                 try:
-                    results = json.loads((folder / "results.json").read_text())
+                    results = run.read_results()
                     record.dataset, record.seed = str(results["dataset"]), int(results["seed"])
                     record.score = float(results["final_normalized_score_mean"])
-                    config = yaml.safe_load(config.read_text()) or {}
-                except (ValueError, KeyError, TypeError, yaml.YAMLError) as err:
-                    raise ConfigError(f"{folder} is not a finished run's folder: {err!r}.") from None
+                    config = run.read_config()
+                except (CheckpointError, ValueError, KeyError, TypeError, yaml.YAMLError) as err:
+                    raise ConfigError(f"{run.path} is not a finished run's folder: {err!r}.") from None
                 record.settings = _flat({k: v for k, v in config.items() if k not in _NOT_ARM}
                                         | {"dataset": {k: v for k, v in (config.get("dataset") or {}).items()
                                                        if k not in ("name", "task")}})

@@ -10,19 +10,14 @@ here, as torchrl's ``sota-implementations`` keep theirs in ``utils.py``:
 * :func:`make_stage1` / :func:`fit_tsidm`: the TS-IDM and Eq. (7);
 * :func:`make_stage2`: the latent value (Eq. 8), the guide (Eq. 9/10), their
   optimizers and the actor of Eq. (11);
-* :func:`make_monitor`: the deployment monitor of the run's data, fitted once and saved;
 * :func:`evaluate`: deterministic episodes with the diagnostics of a frozen policy and,
   when given the deployment monitor, its scores and alarms along the episodes.
 """
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import dataclasses
 import math
-import os
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -36,10 +31,8 @@ from tensordict import TensorDictBase
 from torchrl.objectives import SoftUpdate
 
 from torchrl_tels.compile import capturable_adam, compile_update, precision_context
-from torchrl_tels.config import (available_cpus, check_same_run, monitor_fit_options, resolve_device,
-                                 resolve_precision, resolve_threads, training_config)
-from torchrl_tels.data import (delete_regions, load_dataset, make_offline_replay_buffer, split_trajectories,
-                               subset_dataset, subset_trajectories, trajectory_ids)
+from torchrl_tels.config import check_same_run, resolve_device, resolve_precision, training_config
+from torchrl_tels.data import delete_regions, load_dataset, make_offline_replay_buffer, subset_dataset
 from torchrl_tels.data.datasets import recorded_env_id
 from torchrl_tels.diagnostics import (action_chain_statistics, awr_weight_statistics, is_frozen, is_off_data,
                                      latent_statistics, maze_cells, rollout_statistics)
@@ -47,10 +40,11 @@ from torchrl_tels.envs import (DeploymentMonitor, get_task, normalized_score, ro
                                TSIDMEncoderTransform)
 from torchrl_tels.envs.antmaze import ENV_ID as ANTMAZE_ENV_ID
 from torchrl_tels.envs.evaluation import episode_success, eval_env_spaces, success_rate
-from torchrl_tels.envs.monitor import running_mean
-from torchrl_tels.errors import DatasetError, MonitorError, TaskError
+from torchrl_tels.errors import DatasetError, TaskError
+from torchrl_tels.monitor import monitor_record
 from torchrl_tels.modules import make_guide_policy, make_latent_value, make_tels_actor, TSIDM
 from torchrl_tels.objectives import LatentExpectileLoss, TSIDMLoss, TSymGuideLoss
+from torchrl_tels.run_folder import RunFolder
 from torchrl_tels import training
 from torchrl_tels.seeds import SeedRNG, StackedLoss
 from torchrl_tels.training import check_finite_state, FiniteWatch, get_rng_state, set_rng_state, sum_losses
@@ -354,11 +348,13 @@ def make_tsidm_loss(cfg, tsidm: TSIDM, beta: float) -> TSIDMLoss:
                      term_weights=term_weights, relative=t.latent_scale == "relative", check_inputs=False)
 
 
-def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None):
+def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: RunFolder | Path, logger=None):
     """Stage 1 for one β (Eq. 7): a trained TS-IDM, its final losses and its loss history.
 
-    Final losses average the last 10 % of steps, which App. B.5's β rule compares.
+    Final losses average the last 10 % of steps, which App. B.5's β rule compares; the checkpoints go to
+    ``run_dir``'s state file.
     """
+    folder = RunFolder(run_dir)
     t = cfg.tsidm
     device = resolve_device(cfg.device)
     tsidm = make_tsidm(cfg, data).to(device)
@@ -393,7 +389,7 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
         if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
             watch.check()
             run.step, run.tsidm_history = step + 1, history
-            run.save(run_dir / "state.pt", loss=loss_module.state_dict(), optim=optim.state_dict(),
+            run.save(folder.state_path, loss=loss_module.state_dict(), optim=optim.state_dict(),
                      tail=[pair.tolist() for pair in tail])
     watch.check()
     check_finite_state(loss_module.state_dict(), f"stage 1 (TS-IDM, beta={beta:g}) after step {total}")
@@ -405,13 +401,14 @@ def fit_tsidm(cfg, data, beta: float, run: RunState, run_dir: Path, logger=None)
     return tsidm.eval(), final, history
 
 
-def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: Path, logger=None):
+def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: RunFolder | Path, logger=None):
     """Stage 1 (Eq. 7) for several seeds at once, one ``(tsidm, final, history)`` per seed.
 
     :func:`fit_tsidm`, with the seeds' TS-IDM losses stacked (:class:`~torchrl_tels.seeds.StackedLoss`):
     each seed is initialised and draws its batches from its own RNG stream, as its single-seed run does.
     ``run`` checkpoints the stacked state and the streams; resuming continues all seeds.
     """
+    folder = RunFolder(run_dir)
     t = cfg.tsidm
     beta = float(t.beta)
     device = resolve_device(cfg.device)
@@ -453,7 +450,7 @@ def fit_tsidm_seeds(cfg, datas: list, seeds: list[int], run: RunState, run_dir: 
         if (step + 1) % cfg.checkpoint.interval == 0 and step + 1 < total:
             watch.check()
             run.step = step + 1
-            run.save(run_dir / "state.pt", loss=stack.state_dict(), optim=optim.state_dict(),
+            run.save(folder.state_path, loss=stack.state_dict(), optim=optim.state_dict(),
                      seed_rng=rng.state_dict(), histories=histories, tail=[pair.tolist() for pair in tail])
     watch.check()
     stack.write_back()
@@ -487,13 +484,13 @@ def load_pretrained_tsidm(cfg, data) -> TSIDM | None:
 
 
 def adopt_pretrained_tsidm(cfg, pretrained: TSIDM, run: RunState, run_dirs) -> TSIDM:
-    """Starts ``run`` at stage 2 from ``tsidm.checkpoint``'s TS-IDM, copied into each of ``run_dirs`` as ``tsidm.pt``
+    """Starts ``run`` at stage 2 from ``tsidm.checkpoint``'s TS-IDM, copied into each of the run folders ``run_dirs``
     (its source in the metadata), so that a run folder holds every model it acted with: export and the readings of
     finished runs load ``tsidm.pt`` from the folder, and the checkpoint may move or change after the run."""
     skip_stage1(run)
     metadata = {**pretrained.metadata, "checkpoint": str(cfg.tsidm.checkpoint)}
     for run_dir in run_dirs:
-        pretrained.save(Path(run_dir) / "tsidm.pt", metadata=metadata)
+        pretrained.save(RunFolder(run_dir).tsidm_path, metadata=metadata)
     return pretrained
 
 
@@ -512,16 +509,18 @@ def check_same_stage1_length(cfg, datas: list, seeds: list[int]) -> int:
     return totals.pop()
 
 
-def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained: TSIDM | None = None) -> TSIDM:
+def make_stage1(cfg, data, run: RunState, run_dir: RunFolder | Path, logger=None,
+                pretrained: TSIDM | None = None) -> TSIDM:
     """Algorithm 1, lines 1-4: the ``pretrained`` TS-IDM, this run's finished stage 1, or a trained one.
 
     With ``tsidm.beta=auto`` each candidate is trained and the one with the lowest final
     training loss is kept (App. B.5); finished candidates survive an interruption.
     """
+    folder = RunFolder(run_dir)
     if pretrained is not None:
         return adopt_pretrained_tsidm(cfg, pretrained, run, [run_dir])
     if run.stage != "tsidm":
-        return TSIDM.load(run_dir / "tsidm.pt", observation_dim=data["observation"].shape[-1],
+        return TSIDM.load(folder.tsidm_path, observation_dim=data["observation"].shape[-1],
                           action_dim=data["action"].shape[-1])
     candidates = list(cfg.tsidm.beta_candidates) if cfg.tsidm.beta == "auto" else [float(cfg.tsidm.beta)]
     key = SELECTION_KEYS[cfg.tsidm.beta_selection]
@@ -538,18 +537,18 @@ def make_stage1(cfg, data, run: RunState, run_dir: Path, logger=None, pretrained
                   f"{final['final_sum']:.5f} (unweighted)")
             if min(r[key] for r in run.beta_results) == final[key]:
                 best = (model, history, beta)
-                model.save(run_dir / "best_tsidm.pt", metadata={"beta": beta, "history": history})
+                model.save(folder.best_tsidm_path, metadata={"beta": beta, "history": history})
             run.candidate, run.step, run.tsidm_history = candidate + 1, 0, {}
-            run.save(run_dir / "state.pt")
+            run.save(folder.state_path)
         if best is None:
-            model = TSIDM.load(run_dir / "best_tsidm.pt")
+            model = TSIDM.load(folder.best_tsidm_path)
             best = (model, model.metadata["history"], model.metadata["beta"])
         tsidm, run.tsidm_history, beta = best
         tsidm.metadata = {"beta": beta, "dataset": str(cfg.dataset.name), "beta_results": run.beta_results}
-        tsidm.save(run_dir / "tsidm.pt", metadata=tsidm.metadata)
-    print(f"stage 1 done: beta={beta:g}, TS-IDM saved to {run_dir / 'tsidm.pt'}")
+        tsidm.save(folder.tsidm_path, metadata=tsidm.metadata)
+    print(f"stage 1 done: beta={beta:g}, TS-IDM saved to {folder.tsidm_path}")
     run.stage, run.candidate, run.step = "policy", 0, 0
-    run.save(run_dir / "state.pt")
+    run.save(folder.state_path)
     return tsidm
 
 
@@ -728,131 +727,6 @@ def make_stage2(cfg, data: TensorDictBase, tsidm: TSIDM, action_spec) -> Stage2:
     )
 
 
-def monitor_data(cfg, data: TensorDictBase) -> TensorDictBase:
-    """The transitions the monitor fits on: all of them, or whole trajectories drawn at random (seeded by the
-    run's seed) up to ``monitor.max_transitions``."""
-    cap = cfg.monitor.get("max_transitions")
-    return subset_trajectories(data, cap, cfg.seed) if cap and len(data) > cap else data
-
-
-def check_monitor_data(cfg, data: TensorDictBase) -> None:
-    """Refuses, before anything is written, data with too few trajectories for ``cfg.monitor``'s calibration."""
-    count = int(trajectory_ids(monitor_data(cfg, data))[-1]) + 1
-    need = cfg.monitor.folds if cfg.monitor.calibration == "cross_fit" else 2
-    if count < need:
-        raise MonitorError(f"the deployment monitor's {cfg.monitor.calibration} calibration needs at least {need} "
-                           f"trajectories, and the training data holds {count}; lower monitor.folds or use "
-                           "monitor.calibration=split.")
-
-
-def make_monitor(cfg, data: TensorDictBase, run_dir: Path) -> DeploymentMonitor:
-    """The run's deployment monitor, fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split
-    calibration) and saved as ``run_dir/monitor.pt``; a continuation (``resume=true``) reads that file back
-    when it was fitted to the same dataset, seed and ``monitor`` settings, and refits it otherwise.
-
-    Its detectors are a one-step dynamics ensemble and the nearest data state, combined into the
-    default ``ood_score``. The TS-IDM's terms are not included: the run's TS-IDM is trained on every
-    trajectory and so leaves none to calibrate them on (``DeploymentMonitor.fit`` adds them for a
-    TS-IDM trained on a split).
-    """
-    path = run_dir / "monitor.pt"
-    # The ensemble trains on the CPU: in bf16 where that CPU multiplies it natively, unless the run asks for
-    # fp32. Paired runs detected and alarmed as fp32 at about half the fit time (benchmarks/results/monitor/MONITOR.md).
-    precision = "fp32" if cfg.precision == "fp32" else resolve_precision("auto", "cpu")
-    settings = {k: v for k, v in OmegaConf.to_container(cfg.monitor, resolve=True).items() if k != "background"}
-    fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed), "precision": precision,
-                  "monitor": settings}
-    if cfg.resume and path.is_file():
-        monitor = DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
-                                         action_dim=data["action"].shape[-1])
-        if all(monitor.metadata.get(key) == value for key, value in fitted_for.items()):
-            return monitor
-    m = cfg.monitor
-    options = {**monitor_fit_options(m), "quantile": m.quantile, "seed": cfg.seed, "precision": precision}
-    full = len(data)
-    data = monitor_data(cfg, data.cpu())  # whole trajectories: the held-out calibration splits by trajectory
-    if len(data) < full:
-        print(f"deployment monitor: fitted on {len(data)} of {full} transitions, whole trajectories drawn at random "
-              f"(monitor.max_transitions={m.max_transitions})", flush=True)
-    clock = time.perf_counter()
-    with torch.random.fork_rng():  # the run's RNG streams do not depend on the monitor's settings
-        if m.calibration == "cross_fit":
-            monitor = DeploymentMonitor.cross_fit(data, folds=m.folds, **options)
-        else:
-            train, calibration = split_trajectories(data, 1.0 - float(m.holdout), cfg.seed)
-            monitor = DeploymentMonitor.fit(train, calibration, **options)
-    print(f"deployment monitor: {m.calibration} calibration, threshold {float(monitor.threshold):.3g}, "
-          f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)", flush=True)
-    monitor.save(path, metadata=fitted_for)
-    return monitor
-
-
-def _exit_with_parent(parent: int) -> None:
-    """Ends this process when the run that started it ends, however it ends. A daemon child is stopped only by
-    its parent's own exit handlers, so a run killed by a signal (a scheduler's SIGTERM, SIGKILL, OOM) would leave
-    the fit running on its core and writing into a run folder that may be resumed meanwhile. Linux stops the
-    child itself when asked (``PR_SET_PDEATHSIG``); a parent already gone by then is checked after asking."""
-    if sys.platform.startswith("linux"):
-        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != parent:
-        os._exit(1)
-
-
-def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str, errors, parent: int) -> None:
-    """:func:`make_monitor` in a process of its own, on one thread, that ends with the run; the monitor lands in
-    ``run_dir/monitor.pt``, a failure's message in ``errors``."""
-    _exit_with_parent(parent)
-    torch.set_num_threads(1)
-    try:
-        make_monitor(OmegaConf.create(config), data, Path(run_dir))
-    except BaseException as err:  # reported to the parent, which raises it as one MonitorError
-        errors.put(f"{type(err).__name__}: {err}")
-        raise
-
-
-def monitor_in_background(cfg) -> bool:
-    """``monitor.background``: ``auto`` fits the monitor beside training when the machine has a core the run's
-    torch threads leave free."""
-    setting = cfg.monitor.get("background", False)
-    if setting == "auto":
-        return available_cpus() > resolve_threads(cfg.threads)
-    return bool(setting)
-
-
-class MonitorFit:
-    """The run's deployment monitor (:func:`make_monitor`), fitted inline or, with ``background``, in a process
-    of its own while the stages train; :meth:`get` waits for it. The two give the same monitor: its fits are
-    seeded and its calibration draws on its own generators."""
-
-    def __init__(self, cfg, data: TensorDictBase, run_dir: Path, background: bool) -> None:
-        self.path, self._monitor, self._process = run_dir / "monitor.pt", None, None
-        self._sizes = {"observation_dim": data["observation"].shape[-1], "action_dim": data["action"].shape[-1]}
-        if not background:
-            self._monitor = make_monitor(cfg, data, run_dir)
-            return
-        context = torch.multiprocessing.get_context("spawn")
-        self._errors = context.SimpleQueue()
-        # A daemon: a run that stops early (an error, Ctrl-C) does not wait for the fit.
-        self._process = context.Process(target=_fit_monitor_in_child, daemon=True, args=(
-            OmegaConf.to_container(cfg, resolve=True), data.cpu(), str(run_dir), self._errors, os.getpid()))
-        self._process.start()
-
-    def failed(self) -> bool:
-        """Whether a background fit has already ended without its monitor (checked without waiting)."""
-        return self._process is not None and not self._process.is_alive() and self._process.exitcode != 0
-
-    def get(self) -> DeploymentMonitor:
-        """The monitor; waits for a background fit, and raises :class:`MonitorError` if it failed."""
-        if self._monitor is None:
-            self._process.join()
-            if self._process.exitcode != 0:
-                reason = self._errors.get() if not self._errors.empty() else f"exit code {self._process.exitcode}"
-                raise MonitorError(f"the deployment monitor's fit failed: {reason}")
-            self._monitor = DeploymentMonitor.load(self.path, **self._sizes)
-        return self._monitor
-
-
 def score(task: Task, episode_return: float) -> float:
     """The D4RL normalized score where the task has reference scores, else the raw return."""
     return normalized_score(task, episode_return) if task.has_reference_scores else episode_return
@@ -890,7 +764,7 @@ def evaluate(cfg, actor, env, task: Task, step: int, latent_stats: dict,
                                   latent_stats["data_action_std"]),
               "off_data": is_off_data(guide_step, latent_stats["latent_step_rms"]), **success_rate(successes)}
     if monitor is not None:
-        result["monitor"] = _monitor_record(monitor, monitored)
+        result["monitor"] = monitor_record(monitor, monitored)
     return result
 
 
@@ -923,24 +797,3 @@ def evaluation_scalars(evaluation: dict, prefix: str = "") -> dict[str, float]:
     """The scalars of one :func:`evaluate` record that a logger plots: the score and the behaviour diagnostics."""
     keys = ("score", "success_rate", "guide_step_rms", "realized_error_ratio", "action_std")
     return {f"{prefix}eval/{k}": float(evaluation[k]) for k in keys if evaluation.get(k) is not None}
-
-
-def _monitor_record(monitor: DeploymentMonitor, rollouts: list) -> dict:
-    """The monitor along each episode: its score and windowed mean at every step, the fraction of flagged
-    steps and of alarmed steps. A monitor error (a non-finite state) is recorded, not raised, so it never
-    costs the finished training."""
-    record = {"score": monitor.score_key, "threshold": float(monitor.threshold), "quantile": float(monitor.quantile),
-              "window": monitor.window, "window_threshold": float(monitor.window_threshold),
-              "window_quantile": float(monitor.window_quantile)}
-    try:
-        device = monitor.threshold.device
-        scores = [monitor(rollout.to(device))["next", "ood_score"].reshape(-1).cpu() for rollout in rollouts]
-    except MonitorError as err:
-        return {**record, "error": str(err)}
-    windows = [running_mean(score, monitor.window).float() for score in scores]
-    flat, flat_windows = torch.cat(scores), torch.cat(windows)
-    return {**record, "ood_fraction": (flat > monitor.threshold).float().mean().item(),
-            "alarm_fraction": (flat_windows > monitor.window_threshold).float().mean().item(),
-            "scores": [score.tolist() for score in scores], "windows": [window.tolist() for window in windows]}
-
-
