@@ -57,6 +57,12 @@ DEFAULT_RESULTS = REPO / "benchmarks" / "results"
 #: the default grid at longer budgets: ``--table`` on the default results sets it beside them unless --longer says
 DEFAULT_LONGER = (DEFAULT_RESULTS / "long20k", DEFAULT_RESULTS / "long50k")
 DEFAULT_WORK = REPO / "runs" / "benchmarks"
+#: grids of other rows, each in a folder of its own under the default results (their TELS column is the current
+#: default, where the default grid's is the paper's reading): ``--table`` renders their TABLE.md and links them
+SUB_GRIDS = {
+    "heldout": "Table 1's five other locomotion rows, the pre-registered test of the defaults",
+    "antmaze100k": "Table 1's AntMaze medium and large rows at 100k transitions",
+}
 
 #: TELS with a reduced TS-IDM (paper Table 3): ``tels_<variant>`` trains with ``tsidm.ablation=<variant>``.
 ABLATIONS = {"tels_ae": "ae", "tels_dyn": "dyn", "tels_ode": "ode"}
@@ -517,6 +523,10 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
         lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
+    sub_grids = [(name, what) for name, what in SUB_GRIDS.items() if (results_dir / name / "TABLE.md").is_file()]
+    if sub_grids:
+        lines += ["", "Other rows, each grid with a table of its own (their TELS column is the default as it stands): "
+                  + "; ".join(f"[{what}]({name}/TABLE.md)" for name, what in sub_grids) + "."]
     adroit_tels = [r for t in tasks if is_adroit(t) for r in found[t].get("tels", [])]
     if adroit_tels and (results_dir / ADROIT_DEPARTURES).is_dir():
         reused = sum(reused_tsidm_of(r, "tels_paper") for r in adroit_tels)
@@ -1218,6 +1228,10 @@ def main(argv=None) -> int:
         print(f"wrote {render_table(args.results_dir, tuple(args.longer))}")
         for folder in args.longer:  # the table above links each longer grid's own TABLE.md, so it stays current
             print(f"wrote {render_table(folder)}")
+        if args.results_dir == DEFAULT_RESULTS.resolve():
+            for name in SUB_GRIDS:
+                if (args.results_dir / name).is_dir():
+                    print(f"wrote {render_table(args.results_dir / name)}")
     if failed:
         print(f"{len(failed)} run(s) failed: {failed}", file=sys.stderr)
         return 1
