@@ -254,6 +254,25 @@ def _held_out_verdict() -> list[str]:
             "(stratified-bootstrap 95 % intervals).", ""]
 
 
+def _reach_lines() -> list[str]:
+    """``benchmarks.antmaze_reach``'s readings: whether a zero is the task or a bug."""
+    lines = []
+    for path in sorted((ANTMAZE_100K / "reach").glob("*.json")):
+        r = json.loads(path.read_text())
+        nav, pol, data = r["navigator"], r["policy"], r["data"]
+        label = run_grid.LABELS[pol["method"]]
+        lines.append(
+            f"**Is a zero the task or a bug?** ({r['task']}, [`benchmarks.antmaze_reach`]"
+            f"(../benchmarks/results/antmaze100k/reach/{path.name})) D4RL's own policy with its waypoint controller, "
+            f"started as the evaluation starts, reaches {nav['success_rate']:.0%} of {nav['episodes']} evaluation "
+            f"goals in our environment, so the goal is reachable. {label} trained {pol['steps'] // 1000}k steps "
+            f"reaches {pol['success_rate']:.0%} of {pol['episodes']}; its rollouts come no closer than a median "
+            f"{pol['median_closest_cells']:g} corridor cells from the goal cell (the start is "
+            f"{pol['start_cells_from_goal']}), and the ant is upright on a median {pol['median_upright_share']:.0%} "
+            f"of their steps. {data['goal_cell_share']:.1%} of the data's transitions lie in the goal cell.")
+    return lines
+
+
 def antmaze_section() -> list[str]:
     """Table 1's AntMaze medium and large rows: every arm run so far beside the paper, and what is missing."""
     lines = ["## AntMaze medium and large at 100k", "",
@@ -278,6 +297,8 @@ def antmaze_section() -> list[str]:
                 zero.append(f"{run_grid.LABELS[method]} on {task.removesuffix('-v2-100k')}")
             cells.append(stats.interval_cell(scores))
         lines.append("| | ours | " + " | ".join(cells) + " |")
+    reach = _reach_lines()
+    lines += ["", *reach] if reach else []
     expected = 3 * len(ANTMAZE_ARMS) * len(run_grid.ANTMAZE_100K_TASKS)
     lines += ["", f"Runs: {found} of the grid's {expected} (4 sets × 4 arms × 3 seeds). "
               + ("Baselines above zero, against Table 1's zeros: " + ", ".join(zero) + ". " if zero else "")
