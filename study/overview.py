@@ -191,6 +191,11 @@ def figure_section(all_rows: list[Row]) -> list[str]:
             *_table(all_rows), ""]
 
 
+def _arms_header(arms) -> list[str]:
+    """The head of a table with a row of Table 1's values and a row of ours per set, one column per arm."""
+    return ["| set | scores | " + " | ".join(label for _, label in arms) + " |", "|---|---|" + "---|" * len(arms)]
+
+
 def held_out_section() -> list[str]:
     """The five rows nothing was tuned on: every arm beside Table 1, the pre-registered reading first."""
     lines = ["## Table 1's other five locomotion rows: a pre-registered test of the defaults", "",
@@ -199,9 +204,7 @@ def held_out_section() -> list[str]:
              "iql td3bc tels tels_paper --task <the five> --seed 0 1 2 --steps 5000 --tsidm-steps 3000 "
              "--eval-interval 500 --eval-episodes 10 --threads 1 --results-dir benchmarks/results/heldout`); each "
              "JSON records the commit it ran at (`code`). Arms added after seeing these numbers would be labelled "
-             "as such below the pre-registered ones; there are none.", "",
-             "| set | scores | " + " | ".join(label for _, label in HELD_OUT_ARMS) + " |",
-             "|---|---|" + "---|" * len(HELD_OUT_ARMS)]
+             "as such below the pre-registered ones; there are none.", "", *_arms_header(HELD_OUT_ARMS)]
     commits = set()
     counts = {m: 0 for m, _ in HELD_OUT_ARMS}
     for task in run_grid.HELD_OUT_TASKS:
@@ -283,8 +286,7 @@ def antmaze_section() -> list[str]:
              "success within 0.5; 20 episodes every 5,000 steps (TELS: every 2,000), the score 100 × the success "
              "rate averaged over the later half of the evaluations. Baselines: 100k policy steps with the maze "
              "settings settled on umaze (IQL: the authors' actor and AntMaze values; rewards r − 1).", "",
-             "| set | scores | " + " | ".join(label for _, label in ANTMAZE_ARMS) + " |",
-             "|---|---|" + "---|" * len(ANTMAZE_ARMS)]
+             *_arms_header(ANTMAZE_ARMS)]
     zero, found = [], 0
     for task in run_grid.ANTMAZE_100K_TASKS:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, m)) else "—" for m, _ in ANTMAZE_ARMS]
