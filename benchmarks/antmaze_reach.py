@@ -28,7 +28,7 @@ import torch
 
 from benchmarks.baselines import MAZE_HYPERPARAMETERS, train_baseline
 from benchmarks.harness import code_version, invocation, machine_description, REPO, write_result
-from torchrl_tels.collection.antmaze import ACTION_NOISE, GoalReachingAnt, cell_of, next_waypoint
+from torchrl_tels.collection.antmaze import ACTION_NOISE, GoalReachingAnt, next_waypoint
 from torchrl_tels.collection.antmaze import _distances_to
 from torchrl_tels.envs import antmaze, get_task, rollout_episodes
 
@@ -79,7 +79,8 @@ def policy_reading(task: str, method: str, steps: int, episodes: int, seed: int,
                                     max_steps=get_task(task).max_episode_steps):
         observations = rollout["next", "observation"].double().numpy()
         xy = observations[:, :2]
-        cells = [distance.get(cell_of(p), None) for p in xy]
+        # the cell a point lies in (D4RL's cell_of is shifted half a cell, for steering, not for this)
+        cells = [distance.get((int(round(y / 4)) + 1, int(round(x / 4)) + 1), None) for x, y in xy]
         per_episode.append({
             "success": bool(rollout["next", "reward"].sum() > 0),
             "closest_cells": min((c for c in cells if c is not None), default=None),
@@ -87,7 +88,7 @@ def policy_reading(task: str, method: str, steps: int, episodes: int, seed: int,
             "final_xy": xy[-1].round(2).tolist(),
         })
     env.close()
-    start_cells = distance[cell_of((0.0, 0.0))]
+    start_cells = distance[(1, 1)]  # the evaluation starts at the origin, the centre of cell (1, 1)
     return {"method": method, "steps": steps, "episodes": episodes,
             "success_rate": statistics.fmean(e["success"] for e in per_episode),
             "start_cells_from_goal": start_cells,
