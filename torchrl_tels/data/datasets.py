@@ -26,6 +26,10 @@ Sources understood by :func:`load_dataset`:
 * a dataset shipped inside the package: the eleven 10k sets of the paper's
   Table 1 (:data:`EMBEDDED_DATASETS`; ``"embedded"``/``"default"`` name
   ``"hopper-medium-v2-10k"``);
+* a set too large to ship (:data:`COLLECTED_DATASETS`: AntMaze medium and
+  large at 100k), from the shared folder or the user's
+  (:func:`user_datasets_dir`), or else an error naming the command that
+  makes it;
 * a name of a file in the workplace's shared dataset folder (see
   :func:`shared_datasets_dir`);
 * a Minari dataset id (``"mujoco/hopper/medium-v0"``), read with Minari's own
