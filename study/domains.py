@@ -18,7 +18,7 @@ from benchmarks import run_grid
 from study.latent_scale import run_results
 from torchrl_tels import stats
 from torchrl_tels.record import final_success_rate
-from torchrl_tels.trainer import SELECTION_KEYS
+from torchrl_tels.run.stage1 import SELECTION_KEYS
 
 GRID = run_grid.DEFAULT_RESULTS
 MAZE_TASKS = ("antmaze-umaze-v0-10k", "antmaze-umaze-diverse-v0-10k")

@@ -15,8 +15,7 @@ from benchmarks.harness import recipe_config
 from torchrl_tels.config import validate_config
 from torchrl_tels.envs.monitor import DeploymentMonitor
 from torchrl_tels.errors import ConfigError
-from torchrl_tels.monitor import make_monitor
-from torchrl_tels.trainer import diagnostic_indices, print_plan
+from torchrl_tels.trainer import diagnostic_indices, make_monitor, print_plan
 from tests.recipe_process import REPO_ROOT
 from tests.test_monitor import linear_plant
 
@@ -67,7 +66,7 @@ def test_plan_is_printed_and_a_large_epoch_budget_warned(capsys):
 
 
 def test_monitor_fitted_in_the_background_is_the_inline_one(tmp_path):
-    from torchrl_tels.monitor import MonitorFit, monitor_in_background
+    from torchrl_tels.trainer import MonitorFit, monitor_in_background
 
     cfg = recipe_config(["budget=smoke", "monitor.window=4"])
     data = linear_plant(6)
@@ -86,7 +85,7 @@ def test_monitor_fitted_in_the_background_is_the_inline_one(tmp_path):
 
 def test_a_failed_background_fit_is_one_monitor_error(tmp_path):
     from torchrl_tels.errors import MonitorError
-    from torchrl_tels.monitor import MonitorFit
+    from torchrl_tels.trainer import MonitorFit
 
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
@@ -101,7 +100,7 @@ import sys, time
 from pathlib import Path
 from benchmarks.harness import recipe_config
 from tests.test_monitor import linear_plant
-from torchrl_tels.monitor import MonitorFit
+from torchrl_tels.trainer import MonitorFit
 fit = MonitorFit(recipe_config(["budget=smoke", "monitor.steps=1000000"]), linear_plant(6), Path(sys.argv[1]), background=True)
 print(fit._process.pid, flush=True)
 time.sleep(600)

@@ -89,3 +89,11 @@ def test_tasks_resolve_without_importing_env_modules_by_hand():
     code = "from torchrl_tels.envs import get_task; print(get_task('pointmass-goal').env_id)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "torchrl_tels/PointMassGoal-v0"
+
+
+def test_only_the_config_module_reads_a_hydra_config():
+    # the recipe builds a typed RunSpec once (torchrl_tels.config); the library below never sees a DictConfig
+    offenders = [f"{path.relative_to(PACKAGE.parent)} imports {name}"
+                 for path in sorted(PACKAGE.rglob("*.py")) if path != PACKAGE / "config.py"
+                 for name in imported_modules(path) if name.split(".")[0] in ("omegaconf", "hydra")]
+    assert not offenders, "\n".join(offenders)

@@ -485,7 +485,7 @@ def test_bad_monitor_config_is_one_config_error(override, message):
 
 def test_recipe_monitor_is_fitted_once_and_read_back_on_resume(tmp_path, monkeypatch):
     from benchmarks.harness import recipe_config
-    from torchrl_tels.monitor import check_monitor_data, make_monitor
+    from torchrl_tels.trainer import check_monitor_data, make_monitor
 
     cfg = recipe_config(["budget=smoke", "monitor.window=4"])
     data = linear_plant(6)

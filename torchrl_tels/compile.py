@@ -1,7 +1,7 @@
 """``torch.compile`` and CUDA graphs for a train step, switched as torchrl's ``sota-implementations`` do.
 
 A train step of either stage is one Python function of the batch: the loss forward pass, the backward
-pass, the optimizer step and the target update (``torchrl_tels.trainer.make_train_step``). At the batch
+pass, the optimizer step and the target update (``torchrl_tels.run.loop.make_train_step``). At the batch
 sizes and widths of TELS a GPU is idle most of such a step: its cost is Python, tensordict and
 kernel-launch overhead, not arithmetic. Two tools remove that overhead:
 

@@ -1,9 +1,14 @@
-"""Checks of a TELS recipe config, so a bad value fails at start-up with one clear message."""
+"""A TELS recipe config: its checks, so a bad value fails at start-up with one clear message, and the typed
+:class:`RunSpec` the recipe builds from it once, with the device, precision and threads resolved.
+
+This is the one module of the package that reads a hydra/omegaconf config."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -13,7 +18,19 @@ from torchrl_tels.data.subsets import SUBSET_MODES
 from torchrl_tels.errors import ConfigError
 
 __all__ = [
+    "CheckpointSpec",
+    "CompileSpec",
     "ConfigError",
+    "DatasetSpec",
+    "DiagnosticsSpec",
+    "EvalSpec",
+    "GuideSpec",
+    "LoggerSpec",
+    "MonitorSpec",
+    "PolicySpec",
+    "RunSpec",
+    "TSIDMSpec",
+    "ValueSpec",
     "RESUMABLE_KEYS",
     "STAGE1_KEYS",
     "check_precision_supported",
@@ -428,3 +445,216 @@ def check_writable_folder(folder: str | os.PathLike, name: str = "run_dir") -> P
     except OSError as err:
         raise ConfigError(f"{name} {folder} is not writable: {err.strerror or err}.") from None
     return folder
+
+
+# ----------------------------------------------------------------------------- the run spec
+# The recipe's config as typed records, built once at the recipe's boundary (:meth:`RunSpec.from_config`); the
+# library below reads these and never a DictConfig. Each section mirrors a group of ``recipes/config/config.yaml``
+# (its comments say what each entry means); a field with a default is one added after runs were first saved, and
+# the default reproduces how such a run behaved.
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    name: str
+    task: str | None
+    size: int | None
+    subset: str
+    reward_scale: float
+    reward_bias: float
+    delete_boxes: list
+    delete_ratio: float
+    delete_xy: list
+
+
+@dataclass(frozen=True)
+class TSIDMSpec:
+    checkpoint: str | None
+    beta: float | str  # a number, or "auto": App. B.5's choice among ``beta_candidates``
+    beta_candidates: list
+    ablation: str
+    epochs: int
+    steps: int | None
+    batch_size: int
+    lr: float
+    weight_decay: float
+    latent_state_dim: int | None
+    latent_action_dim: int | None
+    inverse_dropout: float
+    encoder_cells: list
+    decoder_cells: list
+    inverse_cells: list
+    action_decoder_cells: list
+    dynamics_cells: list
+    dim_reduction: str
+    latent_scale: str
+    beta_selection: str = "weighted"
+    term_weights: dict | None = None
+    warn_steps: int | None = None
+
+
+@dataclass(frozen=True)
+class ValueSpec:
+    expectile: float
+    gamma: float
+    target_update_rate: float
+    lr: float
+    num_cells: list
+
+
+@dataclass(frozen=True)
+class GuideSpec:
+    mode: str
+    alpha: float
+    eta: float
+    tsym_regularizer: bool
+    tsym_weight: float
+    tsym_relative: bool
+    max_weight: float
+    reencode_proposal: bool
+    act_with_dropout: bool
+    lr: float
+    num_cells: list
+    reach_weight: float = 0.0
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    steps: int
+    batch_size: int
+
+
+@dataclass(frozen=True)
+class MonitorSpec:
+    calibration: str
+    folds: int
+    holdout: float
+    members: int
+    num_cells: list
+    steps: int
+    window: int
+    quantile: float
+    window_quantile: float
+    background: bool | str = False
+    max_transitions: int | None = None
+
+    def settings(self) -> dict:
+        """What the monitor is fitted with, as ``monitor.pt`` records it (all but where it is fitted)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k != "background"}
+
+
+@dataclass(frozen=True)
+class DiagnosticsSpec:
+    max_transitions: int | None = None
+
+
+@dataclass(frozen=True)
+class EvalSpec:
+    interval: int
+    episodes: int
+    last_n: int
+    max_steps: int
+    batched: bool = False
+
+
+@dataclass(frozen=True)
+class LoggerSpec:
+    exp_name: str
+    wandb_mode: str
+    project: str
+    log_interval: int
+
+
+@dataclass(frozen=True)
+class CheckpointSpec:
+    interval: int
+
+
+@dataclass(frozen=True)
+class CompileSpec:
+    """:func:`~torchrl_tels.compile.compile_update`'s switches; all off for a run saved before they existed."""
+
+    compile: bool = False
+    cudagraphs: bool = False
+    mode: str | None = None
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run of the recipe, resolved: where it computes (``device``, ``threads``), in what ``precision``, and
+    every section of its config as a typed record.
+
+    ``config`` is the resolved config as plain containers (``precision`` resolved), which ``config.yaml``
+    (``yaml``), the logger and the resume check (:func:`training_config`) record.
+    """
+
+    seed: int
+    seeds: list | None
+    device: "torch.device"
+    precision: str
+    threads: int
+    run_dir: Path
+    resume: bool
+    overwrite: bool
+    dataset: DatasetSpec
+    tsidm: TSIDMSpec
+    value: ValueSpec
+    guide: GuideSpec
+    policy: PolicySpec
+    monitor: MonitorSpec
+    diagnostics: DiagnosticsSpec
+    eval: EvalSpec
+    logger: LoggerSpec
+    checkpoint: CheckpointSpec
+    compile: CompileSpec
+    config: dict
+    yaml: str
+
+    SECTIONS = {"dataset": DatasetSpec, "tsidm": TSIDMSpec, "value": ValueSpec, "guide": GuideSpec,
+                "policy": PolicySpec, "monitor": MonitorSpec, "diagnostics": DiagnosticsSpec, "eval": EvalSpec,
+                "logger": LoggerSpec, "checkpoint": CheckpointSpec, "compile": CompileSpec}
+
+    @classmethod
+    def from_config(cls, cfg, *, validate: bool = True) -> "RunSpec":
+        """The spec of a recipe config (a DictConfig or plain mapping). ``validate`` checks it first
+        (:func:`validate_config`, :func:`check_precision_supported`), as the recipe does; without it, as for the
+        ``config.yaml`` of a finished run, an entry the config lacks reads as its default, or ``None``."""
+        from omegaconf import DictConfig
+
+        if validate:
+            validate_config(cfg)
+        container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+        device = container.get("device", "auto")
+        container["precision"] = resolve_precision(container.get("precision", "auto"), device)
+        if validate:
+            check_precision_supported(container["precision"], device)
+        return cls._build(container)
+
+    @classmethod
+    def _build(cls, container: dict) -> "RunSpec":
+        sections = {name: _section(section, container.get(name) or {}) for name, section in cls.SECTIONS.items()}
+        return cls(seed=container.get("seed"), seeds=container.get("seeds"),
+                   device=resolve_device(container.get("device", "auto")), precision=container["precision"],
+                   threads=resolve_threads(container.get("threads", "auto")),
+                   run_dir=Path(str(container.get("run_dir"))).absolute(), resume=bool(container.get("resume")),
+                   overwrite=bool(container.get("overwrite")), config=container,
+                   yaml=OmegaConf.to_yaml(OmegaConf.create(container)), **sections)
+
+    def for_seed(self, seed: int, run_dir: str | os.PathLike) -> "RunSpec":
+        """The spec of one seed of a ``seeds`` run: what that seed's own run, writing to ``run_dir``, would get."""
+        return self._build({**self.config, "seed": seed, "seeds": None, "run_dir": str(run_dir)})
+
+    def precision_context(self):
+        """The factory of the loss forward passes' autocast context on this run's device and precision."""
+        from torchrl_tels.compile import precision_context
+
+        return precision_context(self.device, self.precision)
+
+
+def _section(section: type, node: Mapping):
+    """``section`` from a config group; an entry the group lacks takes the field's default, else ``None``."""
+    values = {}
+    for f in dataclasses.fields(section):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        values[f.name] = node.get(f.name, default)
+    return section(**values)

@@ -30,7 +30,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from torchrl_tels.errors import CheckpointError
 
-__all__ = ["SeedRNG", "StackedLoss"]
+__all__ = ["SeedAxis", "SeedRNG", "StackedLoss"]
 
 
 class StackedLoss:
@@ -88,6 +88,10 @@ class StackedLoss:
         """The stacked leaves that need a gradient (under ``prefix`` only, if given)."""
         source = self.params if prefix is None else self.params.get(prefix)
         return [leaf for leaf in source.values(True, True) if leaf.requires_grad]
+
+    def parameters(self) -> list[torch.Tensor]:
+        """What an optimizer of every seed at once steps: :meth:`trainable`, as ``Module.parameters`` reads."""
+        return self.trainable()
 
     def share(self, key: str, source: "StackedLoss", source_key: str | None = None) -> None:
         """Makes ``params[key]`` a gradient-free view of ``source.params[source_key]``.
@@ -167,3 +171,71 @@ class SeedRNG:
             raise CheckpointError(f"the checkpoint holds RNG streams for {len(states)} seeds, this run has "
                                   f"{len(self.states)}.")
         self.states = list(states)
+
+
+class SeedAxis:
+    """The seeds one process trains, ``K >= 1``, and how their modules, RNG streams and batches line up.
+
+    A plain run (``stacked=False``, one seed) trains its loss modules as they are, on torch's global RNG: the
+    ordinary training loop. A stacked run (``stacked=True``) stacks the seeds' loss modules
+    (:class:`StackedLoss`) and gives each seed its own stream (:class:`SeedRNG`), so that each seed is built and
+    draws its batches as in its own plain run; its losses carry a leading seed dimension. Code written against
+    this class trains either without knowing which.
+    """
+
+    def __init__(self, seeds: Sequence[int], *, stacked: bool, rng: SeedRNG | None = None):
+        if not stacked and len(seeds) != 1:
+            raise ValueError(f"SeedAxis: a plain run trains one seed, got {list(seeds)}.")
+        self.seeds, self.stacked = list(seeds), stacked
+        self.rng = (rng or SeedRNG(len(self.seeds))) if stacked else None
+
+    def __len__(self) -> int:
+        return len(self.seeds)
+
+    @property
+    def labels(self) -> list[str] | None:
+        """Names of the seeds for messages about one of them (``FiniteWatch``); ``None`` for a plain run."""
+        return [f"seed {seed}" for seed in self.seeds] if self.stacked else None
+
+    def prefix(self, k: int) -> str:
+        """The logger prefix of seed ``k``'s scalars."""
+        return f"seed{self.seeds[k]}/" if self.stacked else ""
+
+    def start(self, k: int, seed: int) -> None:
+        """Starts seed ``k``'s stream from ``seed`` (a plain run: torch's global stream)."""
+        if self.stacked:
+            self.rng.start(k, seed)
+        else:
+            torch.manual_seed(seed)
+
+    def seed_shared_stream(self, seed: int) -> None:
+        """Seeds the global stream that a stacked update draws from inside ``vmap`` (dropout); a plain run's
+        global stream is its own and is left as it is."""
+        if self.stacked:
+            torch.manual_seed(seed)
+
+    def use(self, k: int):
+        """A context running its body on seed ``k``'s stream."""
+        return self.rng.use(k) if self.stacked else contextlib.nullcontext()
+
+    def stack(self, losses: Sequence[torch.nn.Module]):
+        """The module one update trains: the seed's own loss, or the seeds' losses stacked."""
+        return StackedLoss(losses) if self.stacked else losses[0]
+
+    def sample(self, buffers: Sequence) -> TensorDictBase:
+        """One batch per seed, each drawn from its own buffer on its own stream (stacked: ``[seeds, batch]``)."""
+        if not self.stacked:
+            return buffers[0].sample()
+        batches = []
+        for k, buffer in enumerate(buffers):
+            with self.use(k):
+                batches.append(buffer.sample())
+        return torch.stack(batches)
+
+    def of(self, value, k: int):
+        """Seed ``k``'s entry of a value with a leading seed dimension (the value itself for a plain run)."""
+        return value[k] if self.stacked else value
+
+    def state_modules(self) -> dict:
+        """The seeds' RNG streams as a checkpointed module (a plain run's global RNG travels with every state)."""
+        return {"seed_rng": self.rng} if self.stacked else {}

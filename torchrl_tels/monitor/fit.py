@@ -11,10 +11,9 @@ import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 
-from torchrl_tels.config import available_cpus, monitor_fit_options, resolve_precision, resolve_threads
+from torchrl_tels.config import available_cpus, monitor_fit_options, resolve_precision, RunSpec
 from torchrl_tels.data import split_trajectories, subset_trajectories, trajectory_ids
 from torchrl_tels.envs import DeploymentMonitor
 from torchrl_tels.errors import MonitorError
@@ -23,25 +22,25 @@ from torchrl_tels.run_folder import RunFolder
 __all__ = ["MonitorFit", "check_monitor_data", "make_monitor", "monitor_data", "monitor_in_background"]
 
 
-def monitor_data(cfg, data: TensorDictBase) -> TensorDictBase:
+def monitor_data(spec: RunSpec, data: TensorDictBase) -> TensorDictBase:
     """The transitions the monitor fits on: all of them, or whole trajectories drawn at random (seeded by the
     run's seed) up to ``monitor.max_transitions``."""
-    cap = cfg.monitor.get("max_transitions")
-    return subset_trajectories(data, cap, cfg.seed) if cap and len(data) > cap else data
+    cap = spec.monitor.max_transitions
+    return subset_trajectories(data, cap, spec.seed) if cap and len(data) > cap else data
 
 
-def check_monitor_data(cfg, data: TensorDictBase) -> None:
-    """Refuses, before anything is written, data with too few trajectories for ``cfg.monitor``'s calibration."""
-    count = int(trajectory_ids(monitor_data(cfg, data))[-1]) + 1
-    need = cfg.monitor.folds if cfg.monitor.calibration == "cross_fit" else 2
+def check_monitor_data(spec: RunSpec, data: TensorDictBase) -> None:
+    """Refuses, before anything is written, data with too few trajectories for ``spec.monitor``'s calibration."""
+    count = int(trajectory_ids(monitor_data(spec, data))[-1]) + 1
+    need = spec.monitor.folds if spec.monitor.calibration == "cross_fit" else 2
     if count < need:
-        raise MonitorError(f"the deployment monitor's {cfg.monitor.calibration} calibration needs at least {need} "
+        raise MonitorError(f"the deployment monitor's {spec.monitor.calibration} calibration needs at least {need} "
                            f"trajectories, and the training data holds {count}; lower monitor.folds or use "
                            "monitor.calibration=split.")
 
 
-def make_monitor(cfg, data: TensorDictBase, run_dir: RunFolder | Path) -> DeploymentMonitor:
-    """The run's deployment monitor, fitted to ``data`` as ``cfg.monitor`` says (cross-fitted or split
+def make_monitor(spec: RunSpec, data: TensorDictBase, run_dir: RunFolder | Path) -> DeploymentMonitor:
+    """The run's deployment monitor, fitted to ``data`` as ``spec.monitor`` says (cross-fitted or split
     calibration) and saved as ``run_dir/monitor.pt``; a continuation (``resume=true``) reads that file back
     when it was fitted to the same dataset, seed and ``monitor`` settings, and refits it otherwise.
 
@@ -53,19 +52,19 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: RunFolder | Path) -> Deploy
     path = RunFolder(run_dir).monitor_path
     # The ensemble trains on the CPU: in bf16 where that CPU multiplies it natively, unless the run asks for
     # fp32. Paired runs detected and alarmed as fp32 at about half the fit time (benchmarks/results/monitor/MONITOR.md).
-    precision = "fp32" if cfg.precision == "fp32" else resolve_precision("auto", "cpu")
-    settings = {k: v for k, v in OmegaConf.to_container(cfg.monitor, resolve=True).items() if k != "background"}
-    fitted_for = {"dataset": str(cfg.dataset.name), "seed": int(cfg.seed), "precision": precision,
+    precision = "fp32" if spec.precision == "fp32" else resolve_precision("auto", "cpu")
+    settings = spec.monitor.settings()
+    fitted_for = {"dataset": str(spec.dataset.name), "seed": int(spec.seed), "precision": precision,
                   "monitor": settings}
-    if cfg.resume and path.is_file():
+    if spec.resume and path.is_file():
         monitor = DeploymentMonitor.load(path, observation_dim=data["observation"].shape[-1],
                                          action_dim=data["action"].shape[-1])
         if all(monitor.metadata.get(key) == value for key, value in fitted_for.items()):
             return monitor
-    m = cfg.monitor
-    options = {**monitor_fit_options(m), "quantile": m.quantile, "seed": cfg.seed, "precision": precision}
+    m = spec.monitor
+    options = {**monitor_fit_options(settings), "quantile": m.quantile, "seed": spec.seed, "precision": precision}
     full = len(data)
-    data = monitor_data(cfg, data.cpu())  # whole trajectories: the held-out calibration splits by trajectory
+    data = monitor_data(spec, data.cpu())  # whole trajectories: the held-out calibration splits by trajectory
     if len(data) < full:
         print(f"deployment monitor: fitted on {len(data)} of {full} transitions, whole trajectories drawn at random "
               f"(monitor.max_transitions={m.max_transitions})", flush=True)
@@ -74,7 +73,7 @@ def make_monitor(cfg, data: TensorDictBase, run_dir: RunFolder | Path) -> Deploy
         if m.calibration == "cross_fit":
             monitor = DeploymentMonitor.cross_fit(data, folds=m.folds, **options)
         else:
-            train, calibration = split_trajectories(data, 1.0 - float(m.holdout), cfg.seed)
+            train, calibration = split_trajectories(data, 1.0 - float(m.holdout), spec.seed)
             monitor = DeploymentMonitor.fit(train, calibration, **options)
     print(f"deployment monitor: {m.calibration} calibration, threshold {float(monitor.threshold):.3g}, "
           f"window threshold {float(monitor.window_threshold):.3g} ({time.perf_counter() - clock:.0f} s)", flush=True)
@@ -94,24 +93,24 @@ def _exit_with_parent(parent: int) -> None:
         os._exit(1)
 
 
-def _fit_monitor_in_child(config: dict, data: TensorDictBase, run_dir: str, errors, parent: int) -> None:
+def _fit_monitor_in_child(spec: RunSpec, data: TensorDictBase, run_dir: str, errors, parent: int) -> None:
     """:func:`make_monitor` in a process of its own, on one thread, that ends with the run; the monitor lands in
     ``run_dir/monitor.pt``, a failure's message in ``errors``."""
     _exit_with_parent(parent)
     torch.set_num_threads(1)
     try:
-        make_monitor(OmegaConf.create(config), data, Path(run_dir))
+        make_monitor(spec, data, Path(run_dir))
     except BaseException as err:  # reported to the parent, which raises it as one MonitorError
         errors.put(f"{type(err).__name__}: {err}")
         raise
 
 
-def monitor_in_background(cfg) -> bool:
+def monitor_in_background(spec: RunSpec) -> bool:
     """``monitor.background``: ``auto`` fits the monitor beside training when the machine has a core the run's
     torch threads leave free."""
-    setting = cfg.monitor.get("background", False)
+    setting = spec.monitor.background
     if setting == "auto":
-        return available_cpus() > resolve_threads(cfg.threads)
+        return available_cpus() > spec.threads
     return bool(setting)
 
 
@@ -120,17 +119,17 @@ class MonitorFit:
     of its own while the stages train; :meth:`get` waits for it. The two give the same monitor: its fits are
     seeded and its calibration draws on its own generators."""
 
-    def __init__(self, cfg, data: TensorDictBase, run_dir: RunFolder | Path, background: bool) -> None:
+    def __init__(self, spec: RunSpec, data: TensorDictBase, run_dir: RunFolder | Path, background: bool) -> None:
         self.path, self._monitor, self._process = RunFolder(run_dir).monitor_path, None, None
         self._sizes = {"observation_dim": data["observation"].shape[-1], "action_dim": data["action"].shape[-1]}
         if not background:
-            self._monitor = make_monitor(cfg, data, run_dir)
+            self._monitor = make_monitor(spec, data, run_dir)
             return
         context = torch.multiprocessing.get_context("spawn")
         self._errors = context.SimpleQueue()
         # A daemon: a run that stops early (an error, Ctrl-C) does not wait for the fit.
         self._process = context.Process(target=_fit_monitor_in_child, daemon=True, args=(
-            OmegaConf.to_container(cfg, resolve=True), data.cpu(), os.fspath(run_dir), self._errors, os.getpid()))
+            spec, data.cpu(), os.fspath(run_dir), self._errors, os.getpid()))
         self._process.start()
 
     def failed(self) -> bool:
