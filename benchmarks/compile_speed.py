@@ -47,7 +47,7 @@ def width_overrides(width: int | None) -> list[str]:
 
 
 def tsidm_step(cfg, data, seeds: list[int]):
-    """Stage 1's loop body (``fit_tsidm`` / ``fit_tsidm_seeds``) as a function of nothing."""
+    """Stage 1's loop body (``torchrl_tels.run.fit_tsidm``, one seed or stacked) as a function of nothing."""
     device = torch.device(cfg.device)
     rng = SeedRNG(len(seeds))
     losses, buffers = [], []

@@ -50,7 +50,9 @@ from benchmarks.baselines import (ADROIT_HYPERPARAMETERS, check_reward_scale, HY
                                   METHODS as BASELINES, train_baseline)
 from benchmarks.harness import (code_version, invocation, machine_description, recipe_config, REPO, repo_relative, run_recipe,
                                 save_figure, skip_existing, with_pinned_precision, write_result)
+from torchrl_tels.errors import CheckpointError
 from torchrl_tels.record import second_half_mean
+from torchrl_tels.run_folder import RunFolder
 from torchrl_tels.training import write_text
 
 DEFAULT_RESULTS = REPO / "benchmarks" / "results"
@@ -256,7 +258,7 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
         if reused is not None:
             overrides.append(f"tsidm.checkpoint={reused['from']}")
     run_recipe(overrides, args.threads)
-    results = json.loads((run_dir / "results.json").read_text())
+    results = RunFolder(run_dir).read_results()
     record = {**results, "run_dir": str(run_dir), "recipe_overrides": overrides}
     if reused is not None or started_from is not None:
         record["tsidm_reused"] = reused or {"from": started_from,
@@ -267,21 +269,21 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
 def _saved_config(run_dir: Path) -> dict | None:
     """The ``config.yaml`` a recipe run wrote in ``run_dir``, ``None`` if there is none or it does not parse."""
     try:
-        saved = yaml.safe_load((run_dir / "config.yaml").read_text())
-    except (OSError, yaml.YAMLError):
+        saved = RunFolder(run_dir).read_config()
+    except (CheckpointError, OSError, yaml.YAMLError):
         return None
     return saved if isinstance(saved, dict) else None
 
 
 def _recorded_checkpoint(run_dir: Path) -> str | None:
     """The ``tsidm.checkpoint`` a run folder's config records, where a run started there (``None`` otherwise)."""
-    saved = _saved_config(run_dir) if (run_dir / "state.pt").exists() else None
+    saved = _saved_config(run_dir) if RunFolder(run_dir).state_path.exists() else None
     return ((saved or {}).get("tsidm") or {}).get("checkpoint")
 
 
 def _tsidm_metadata(tsidm_path: Path) -> dict:
     """What a TS-IDM file records of its stage 1 (β, dataset, each candidate β's final losses), ``{}`` if unreadable."""
-    from torchrl_tels.checkpoint import CheckpointError, load_checkpoint
+    from torchrl_tels.checkpoint import load_checkpoint
     from torchrl_tels.modules import TSIDM
 
     try:
@@ -299,19 +301,19 @@ def reusable_tsidm(source: Path, task: str, overrides: list[str]) -> dict | None
     def refuse(why: str) -> None:
         print(f"--tsidm-from: {why}; this run trains its own TS-IDM", flush=True)
 
-    saved = _saved_config(source)
-    if saved is None or not (source / "tsidm.pt").exists():
+    saved, tsidm = _saved_config(source), RunFolder(source).tsidm_path
+    if saved is None or not tsidm.exists():
         return refuse(f"no finished stage 1 in {source}")
     if (saved.get("tsidm") or {}).get("checkpoint"):
         return refuse(f"{source} did not train its TS-IDM: it started from {saved['tsidm']['checkpoint']}")
     differences = stage1_differences(saved, training_config(recipe_config(with_pinned_precision(overrides))))
     if differences:
         return refuse(f"{source}'s stage 1 had other settings ({'; '.join(differences)})")
-    metadata = _tsidm_metadata(source / "tsidm.pt")
+    metadata = _tsidm_metadata(tsidm)
     if not metadata.get("beta_results") or metadata.get("dataset") != task or (
             metadata.get("beta") != saved["tsidm"].get("beta") and saved["tsidm"].get("beta") != "auto"):
-        return refuse(f"{source / 'tsidm.pt'} is not the TS-IDM the stage 1 of {source / 'config.yaml'} wrote")
-    return {"from": str(source / "tsidm.pt"), "beta_results": metadata["beta_results"]}
+        return refuse(f"{tsidm} is not the TS-IDM the stage 1 of {RunFolder(source).config_path} wrote")
+    return {"from": str(tsidm), "beta_results": metadata["beta_results"]}
 
 
 def _tsidm_matches(run_dir: Path, task: str, seed: int, tsidm_steps: int | None) -> bool:
@@ -324,16 +326,16 @@ def _tsidm_matches(run_dir: Path, task: str, seed: int, tsidm_steps: int | None)
 def resolve_tsidm(task: str, seed: int, args) -> tuple[Path, str]:
     """The TS-IDM for iql_latent: the TELS run's if it has the same budget, else one the recipe trains alone."""
     tels_dir = tels_run_dir(args.work_dir, task, seed)
-    if (tels_dir / "tsidm.pt").exists() and _tsidm_matches(tels_dir, task, seed, args.tsidm_steps):
-        return tels_dir / "tsidm.pt", "TELS run"
+    if RunFolder(tels_dir).tsidm_path.exists() and _tsidm_matches(tels_dir, task, seed, args.tsidm_steps):
+        return RunFolder(tels_dir).tsidm_path, "TELS run"
     budget = f"steps{args.tsidm_steps}" if args.tsidm_steps is not None else f"epochs{PAPER_TSIDM_EPOCHS}"
     run_dir = args.work_dir / "tsidm" / task / f"seed{seed}_{budget}"
-    if not (run_dir / "tsidm.pt").exists():
+    if not RunFolder(run_dir).tsidm_path.exists():
         # Stage 1 only: the policy stage is cut to one step with a one-step evaluation.
         run_recipe(_recipe_overrides(task, seed, run_dir, args, "disabled") + [
             "policy.steps=1", "eval.interval=1", "eval.episodes=1", "eval.max_steps=1", "eval.last_n=1",
         ], args.threads)
-    return run_dir / "tsidm.pt", "recipe, stage 1 only"
+    return RunFolder(run_dir).tsidm_path, "recipe, stage 1 only"
 
 
 def budget_of(args, method: str) -> dict:
