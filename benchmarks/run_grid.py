@@ -496,7 +496,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     longer = {folder: load_results(folder) for folder in longer_dirs}
     tasks = [t for t in TASKS if t in found] + sorted(t for t in found if t not in TASKS)
     lines = [
-        "# TELS against TorchRL's offline baselines on the D4RL-10k sets",
+        "# TELS against TorchRL's offline baselines on Table 1's reduced-size D4RL sets",
         "",
         f"Generated {datetime.now(timezone.utc).isoformat(timespec='seconds')} by "
         f"`python -m benchmarks.run_grid --table` from `{repo_relative(results_dir)}`.",

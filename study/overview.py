@@ -230,6 +230,20 @@ def held_out_section() -> list[str]:
     return lines
 
 
+def held_out_verdict_line() -> list[str]:
+    """The pre-registered rows for the report's opening verdict: the default against BC on each row run so far."""
+    pairs = []
+    for task in run_grid.HELD_OUT_TASKS:
+        default, bc = _scores("tels", task, HELD_OUT), _scores("bc", task, HELD_OUT)
+        if default and bc:
+            pairs.append(f"{task.removesuffix('-v2-10k')}: the default {sum(default) / len(default):.1f} (n={len(default)}), "
+                         f"BC {sum(bc) / len(bc):.1f} (n={len(bc)}), Table 1's TELS {_paper(task, 'tels')[0]:.1f}")
+    return ["**Table 1's five other locomotion rows** (pre-registered; nothing was tuned on them), so far: "
+            + ("; ".join(pairs) if pairs else "no runs") + ". "
+            + _held_out_verdict()[0].replace("**Verdict over the nine rows**:", "The verdict over the nine rows:")
+            + " Details: [the five rows](#table-1s-other-five-locomotion-rows-a-pre-registered-test-of-the-defaults).", ""]
+
+
 def _held_out_verdict() -> list[str]:
     """The default against BC over all nine locomotion rows, once every cell has three seeds."""
     import numpy as np
@@ -276,6 +290,44 @@ def _reach_lines() -> list[str]:
     return lines
 
 
+@dataclass(frozen=True)
+class Reading:
+    task: str
+    method: str
+    mean: float
+    text: str
+
+
+def _against_table1(task: str, method: str, scores: list[float]) -> Reading:
+    """One cell against Table 1's: above or below its mean ± std, or within it."""
+    mean = sum(scores) / len(scores)
+    paper_mean, paper_std = _paper(task, method)
+    spread = paper_std or 0.0
+    where = ("above" if mean > paper_mean + spread else "below" if mean < paper_mean - spread else "within")
+    text = (f"{run_grid.LABELS[method]} on {task.removesuffix('-v2-100k')} {mean:.1f} (n={len(scores)}), {where} "
+            f"Table 1's {run_grid.paper_cell((paper_mean, paper_std))}")
+    return Reading(task, method, mean, text)
+
+
+def _antmaze_verdict(readings: list[Reading]) -> str:
+    above_zero = [r for r in readings if r.method != "tels" and r.mean > 0]
+    return ("(n = seeds per cell; a cell with n < 3 says what one run did, not what the method does): "
+            f"{'; '.join(r.text for r in readings) or 'no runs yet'}. "
+            + ("Table 1's premise for these rows, that the baselines fail where TELS does not, does not hold for "
+               + ", ".join(f"{run_grid.LABELS[r.method]} on {r.task.removesuffix('-v2-100k')}" for r in above_zero)
+               + ". " if above_zero else "")
+            + ("TELS has no finished run here yet." if not any(r.method == "tels" for r in readings) else ""))
+
+
+def antmaze_verdict_line() -> list[str]:
+    """The AntMaze medium/large verdict for the report's opening verdict."""
+    readings = [_against_table1(task, method, scores) for task in run_grid.ANTMAZE_100K_TASKS
+                for method, _ in ANTMAZE_ARMS
+                if (scores := _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method]))]
+    return ["**AntMaze medium and large at 100k**, so far " + _antmaze_verdict(readings)
+            + " Details: [AntMaze medium and large at 100k](#antmaze-medium-and-large-at-100k).", ""]
+
+
 def antmaze_section() -> list[str]:
     """Table 1's AntMaze medium and large rows: every arm run so far beside the paper, and what is missing."""
     lines = ["## AntMaze medium and large at 100k", "",
@@ -287,7 +339,7 @@ def antmaze_section() -> list[str]:
              "rate averaged over the later half of the evaluations. Baselines: 100k policy steps with the maze "
              "settings settled on umaze (IQL: the authors' actor and AntMaze values; rewards r − 1).", "",
              *_arms_header(ANTMAZE_ARMS)]
-    zero, found = [], 0
+    readings, found = [], 0
     for task in run_grid.ANTMAZE_100K_TASKS:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, m)) else "—" for m, _ in ANTMAZE_ARMS]
         lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
@@ -295,15 +347,15 @@ def antmaze_section() -> list[str]:
         for method, _ in ANTMAZE_ARMS:
             scores = _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method])
             found += len(scores)
-            if scores and method != "tels" and max(scores) > 0:
-                zero.append(f"{run_grid.LABELS[method]} on {task.removesuffix('-v2-100k')}")
             cells.append(stats.interval_cell(scores))
+            if scores:
+                readings.append(_against_table1(task, method, scores))
         lines.append("| | ours | " + " | ".join(cells) + " |")
     reach = _reach_lines()
     lines += ["", *reach] if reach else []
     expected = 3 * len(ANTMAZE_ARMS) * len(run_grid.ANTMAZE_100K_TASKS)
-    lines += ["", f"Runs: {found} of the grid's {expected} (4 sets × 4 arms × 3 seeds). "
-              + ("Baselines above zero, against Table 1's zeros: " + ", ".join(zero) + ". " if zero else "")
-              + "Not run yet: the rest of the grid, TELS's α = 0 arm, Fig. 3's deletion test and Table 9's ablations "
-              "(commands in [LOG.md](LOG.md)).", ""]
+    lines += ["", "**Verdict so far** " + _antmaze_verdict(readings),
+              "", f"Runs: {found} of the grid's {expected} (4 sets × 4 arms × 3 seeds). Not run yet: the rest of the "
+              "grid, TELS's α = 0 arm, Fig. 3's deletion test and Table 9's ablations (commands in [LOG.md](LOG.md)).",
+              ""]
     return lines
