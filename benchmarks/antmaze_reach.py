@@ -29,7 +29,6 @@ import torch
 from benchmarks.baselines import MAZE_HYPERPARAMETERS, train_baseline
 from benchmarks.harness import code_version, invocation, machine_description, REPO, write_result
 from torchrl_tels.collection.antmaze import ACTION_NOISE, GoalReachingAnt, next_waypoint
-from torchrl_tels.collection.antmaze import _distances_to
 from torchrl_tels.envs import antmaze, get_task, rollout_episodes
 
 RESULTS = REPO / "benchmarks" / "results" / "antmaze100k" / "reach"
@@ -42,8 +41,7 @@ def data_reading(task: str) -> dict:
     maze = antmaze.maze_of_task(task)
     data = load_dataset(task)
     xy = data["observation"][:, :2].double().numpy()
-    cells = np.stack([np.round(xy[:, 1] / 4) + 1, np.round(xy[:, 0] / 4) + 1], 1).astype(int)
-    in_goal_cell = (cells == np.array(maze.goal_cell)).all(1)
+    in_goal_cell = np.array([maze.cell_at(p) == maze.goal_cell for p in xy])
     return {"transitions": len(data), "rewarded_transitions": int((data["next", "reward"] > 0).sum()),
             "goal_cell": list(maze.goal_cell), "goal_cell_share": float(in_goal_cell.mean())}
 
@@ -70,7 +68,7 @@ def navigator_reading(task: str, episodes: int, seed: int) -> dict:
 
 def policy_reading(task: str, method: str, steps: int, episodes: int, seed: int, threads: int | None) -> dict:
     maze = antmaze.maze_of_task(task)
-    distance = _distances_to(maze, maze.goal_cell)
+    distance = maze.distances_to(maze.goal_cell)
     results, actor, env = train_baseline(method, task, steps=steps, seed=seed, eval_interval=steps, eval_episodes=1,
                                          eval_last_n=1, eval_batched=False, threads=threads,
                                          hyperparameters=MAZE_HYPERPARAMETERS.get(method, {}), return_policy=True)
@@ -79,8 +77,8 @@ def policy_reading(task: str, method: str, steps: int, episodes: int, seed: int,
                                     max_steps=get_task(task).max_episode_steps):
         observations = rollout["next", "observation"].double().numpy()
         xy = observations[:, :2]
-        # the cell a point lies in (D4RL's cell_of is shifted half a cell, for steering, not for this)
-        cells = [distance.get((int(round(y / 4)) + 1, int(round(x / 4)) + 1), None) for x, y in xy]
+        # the cell each point lies in (D4RL's cell_of is shifted half a cell, for steering, not for this)
+        cells = [distance.get(maze.cell_at(p)) for p in xy]
         per_episode.append({
             "success": bool(rollout["next", "reward"].sum() > 0),
             "closest_cells": min((c for c in cells if c is not None), default=None),

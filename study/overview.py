@@ -51,14 +51,13 @@ class Row:
     best: tuple[str, list[float]]  # the other baseline with the highest mean: (method, scores)
 
 
-def _all_runs(method: str, task: str, results: Path) -> list[dict]:
-    found = [json.loads(p.read_text()) for p in sorted((results / method / task).glob("seed*.json"))]
-    return sorted(found, key=lambda r: r["seed"])
+def _scores(method: str, task: str, results: Path = GRID, steps: int = domains.STUDY_STEPS) -> list[float]:
+    return domains.scores(domains.runs(method, task, results, steps))
 
 
-def _scores(method: str, task: str, results: Path = GRID, steps: int | None = domains.STUDY_STEPS) -> list[float]:
-    runs = (_all_runs(method, task, results) if steps is None else domains.runs(method, task, results, steps))
-    return domains.scores(runs)
+def _tuned_default(task: str) -> list[float]:
+    """The default's scores on one of the four tuned locomotion sets (the report's default column), by seed."""
+    return [r["final_normalized_score_mean"] for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, task).items())]
 
 
 def _best(task: str, results: Path, steps_of=lambda m: domains.STUDY_STEPS) -> tuple[str, list[float]]:
@@ -71,8 +70,7 @@ def rows() -> list[Row]:
     """Every row the figure shows, in Table 1's order, then Table 6's."""
     out = []
     for task in run_grid.TASKS:
-        tels = [r["final_normalized_score_mean"] for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, task).items())]
-        out.append(Row("locomotion, tuned on", task, tels, _scores("bc", task), _best(task, GRID)))
+        out.append(Row("locomotion, tuned on", task, _tuned_default(task), _scores("bc", task), _best(task, GRID)))
     for task in run_grid.HELD_OUT_TASKS:
         out.append(Row("locomotion, pre-registered", task, _scores("tels", task, HELD_OUT), _scores("bc", task, HELD_OUT),
                        _best(task, HELD_OUT)))
@@ -256,9 +254,7 @@ def _held_out_verdict() -> list[str]:
             return None
         return np.array([s[:3] for s in by_task]).T  # [seeds, tasks]
 
-    tuned_default = {t: [r["final_normalized_score_mean"] for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, t).items())]
-                     for t in run_grid.TASKS}
-    default = matrix(lambda t: tuned_default[t] if t in tuned_default else _scores("tels", t, HELD_OUT))
+    default = matrix(lambda t: _tuned_default(t) if t in run_grid.TASKS else _scores("tels", t, HELD_OUT))
     bc = matrix(lambda t: _scores("bc", t) if t in run_grid.TASKS else _scores("bc", t, HELD_OUT))
     if default is None or bc is None:
         return ["**Verdict over the nine rows**: not yet; it needs three seeds of the default and of BC on every row.",
@@ -321,12 +317,19 @@ def _antmaze_verdict(readings: list[Reading]) -> str:
             + (" TELS has no finished run here yet." if not any(r.method == "tels" for r in readings) else ""))
 
 
+def _antmaze_scores() -> dict[tuple[str, str], list[float]]:
+    """{(task, method): scores} of the AntMaze 100k grid, every cell, empty where nothing ran."""
+    return {(task, method): _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method])
+            for task in run_grid.ANTMAZE_100K_TASKS for method, _ in ANTMAZE_ARMS}
+
+
+def _antmaze_readings(scores: dict[tuple[str, str], list[float]]) -> list[Reading]:
+    return [_against_table1(task, method, values) for (task, method), values in scores.items() if values]
+
+
 def antmaze_verdict_line() -> list[str]:
     """The AntMaze medium/large verdict for the report's opening verdict."""
-    readings = [_against_table1(task, method, scores) for task in run_grid.ANTMAZE_100K_TASKS
-                for method, _ in ANTMAZE_ARMS
-                if (scores := _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method]))]
-    return ["**AntMaze medium and large at 100k**, so far " + _antmaze_verdict(readings)
+    return ["**AntMaze medium and large at 100k**, so far " + _antmaze_verdict(_antmaze_readings(_antmaze_scores()))
             + " Details: [AntMaze medium and large at 100k](#antmaze-medium-and-large-at-100k).", ""]
 
 
@@ -341,18 +344,12 @@ def antmaze_section() -> list[str]:
              "rate averaged over the later half of the evaluations. Baselines: 100k policy steps with the maze "
              "settings settled on umaze (IQL: the authors' actor and AntMaze values; rewards r − 1).", "",
              *_arms_header(ANTMAZE_ARMS)]
-    readings, found = [], 0
+    scores = _antmaze_scores()
     for task in run_grid.ANTMAZE_100K_TASKS:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, m)) else "—" for m, _ in ANTMAZE_ARMS]
         lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
-        cells = []
-        for method, _ in ANTMAZE_ARMS:
-            scores = _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method])
-            found += len(scores)
-            cells.append(stats.interval_cell(scores))
-            if scores:
-                readings.append(_against_table1(task, method, scores))
-        lines.append("| | ours | " + " | ".join(cells) + " |")
+        lines.append("| | ours | " + " | ".join(stats.interval_cell(scores[task, m]) for m, _ in ANTMAZE_ARMS) + " |")
+    readings, found = _antmaze_readings(scores), sum(map(len, scores.values()))
     reach = _reach_lines()
     lines += ["", *reach] if reach else []
     expected = 3 * len(ANTMAZE_ARMS) * len(run_grid.ANTMAZE_100K_TASKS)

@@ -19,7 +19,6 @@ generator's noise and episode protocol (:func:`collect_antmaze`):
 """
 from __future__ import annotations
 
-import collections
 import importlib.resources
 from dataclasses import dataclass
 
@@ -92,28 +91,13 @@ def cell_of(xy) -> tuple[int, int]:
     return int(1 + y / 4), int(1 + x / 4)
 
 
-def _distances_to(maze: D4RLMaze, target: tuple[int, int]) -> dict[tuple[int, int], int]:
-    """Breadth-first step counts from every free cell to ``target``."""
-    walls = maze.walls
-    distance = {target: 0}
-    queue = collections.deque([target])
-    while queue:
-        row, col = queue.popleft()
-        for cell in ((row - 1, col), (row + 1, col), (row, col - 1), (row, col + 1)):
-            if (0 <= cell[0] < walls.shape[0] and 0 <= cell[1] < walls.shape[1]
-                    and not walls[cell] and cell not in distance):
-                distance[cell] = distance[row, col] + 1
-                queue.append(cell)
-    return distance
-
-
 def next_waypoint(maze: D4RLMaze, xy, goal, rng: np.random.Generator) -> np.ndarray:
     """D4RL's waypoint: the goal itself in the goal's cell, else the centre of the next cell on a shortest
     path towards it plus ``U(0, 1)`` per axis (cells by :func:`cell_of`)."""
     here, target = cell_of(xy), cell_of(goal)
     if here == target:
         return np.asarray(goal, np.float64)
-    distance = _distances_to(maze, target)
+    distance = maze.distances_to(target)
     row, col = here
     steps = [(distance[c], c) for c in ((row - 1, col), (row + 1, col), (row, col - 1), (row, col + 1))
              if c in distance]
@@ -121,10 +105,6 @@ def next_waypoint(maze: D4RLMaze, xy, goal, rng: np.random.Generator) -> np.ndar
         return np.asarray(goal, np.float64)
     cell = min(steps)[1]
     return maze.cell_centre(cell) + rng.uniform(0.0, 1.0, size=2)
-
-
-def _goal_in(maze: D4RLMaze, cell, rng: np.random.Generator) -> np.ndarray:
-    return maze.cell_centre(cell) + rng.uniform(0.0, 1.0, size=2) + rng.uniform(0.0, 0.5, size=2)
 
 
 def collect_antmaze(name: str, *, episodes: int = 100, seed: int = 0,
@@ -143,7 +123,7 @@ def collect_antmaze(name: str, *, episodes: int = 100, seed: int = 0,
     policy = policy or GoalReachingAnt()
     goal_cells = maze.cells("g") if spec.play else maze.cells()
     start_cells = [c for c in maze.cells() if c not in goal_cells] if spec.play else maze.cells()
-    eval_goal = _goal_in(maze, maze.goal_cell, rng)
+    eval_goal = maze.sample_goal(maze.goal_cell, rng)
 
     env = AntMazeD4RLEnv(spec.maze)
     rows = episodes * EPISODE_ROWS
@@ -155,7 +135,7 @@ def collect_antmaze(name: str, *, episodes: int = 100, seed: int = 0,
     try:
         for episode in tqdm(range(episodes), desc=f"antmaze-{name}", disable=not progress):
             start = maze.cell_centre(start_cells[rng.integers(len(start_cells))]) + rng.uniform(0.0, 1.0, size=2)
-            goal = _goal_in(maze, goal_cells[rng.integers(len(goal_cells))], rng)
+            goal = maze.sample_goal(goal_cells[rng.integers(len(goal_cells))], rng)
             observation, _ = env.reset(seed=int(rng.integers(2**31)), options={"start": start, "goal": goal})
             for _ in range(EPISODE_ROWS):
                 waypoint = next_waypoint(maze, observation[:2], goal, rng)

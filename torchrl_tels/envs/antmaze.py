@@ -40,6 +40,7 @@ environment is built.
 
 from __future__ import annotations
 
+import collections
 import hashlib
 import os
 import tempfile
@@ -53,7 +54,7 @@ import numpy as np
 from gymnasium import spaces
 
 from torchrl_tels.envs.robotics import import_gymnasium_robotics, maze_files_removed
-from torchrl_tels.envs.tasks import D4RL_REFERENCE_SCORES, Task, register_task
+from torchrl_tels.envs.tasks import D4RL_REFERENCE_SCORES, Task, get_task, register_task
 
 __all__ = [
     "ACTION_SCALE",
@@ -103,6 +104,28 @@ class D4RLMaze:
         """The centre of cell (row, col) in D4RL's frame."""
         row, col = cell
         return CELL_SIZE * np.array([col - 1.0, row - 1.0])
+
+    def cell_at(self, xy) -> tuple[int, int]:
+        """The cell (row, col) that point ``xy`` of D4RL's frame lies in."""
+        return int(round(float(xy[1]) / CELL_SIZE)) + 1, int(round(float(xy[0]) / CELL_SIZE)) + 1
+
+    def sample_goal(self, cell, rng: np.random.Generator) -> np.ndarray:
+        """A goal in ``cell`` as D4RL draws one: its centre plus ``U(0, 1) + U(0, 0.5)`` per axis."""
+        return self.cell_centre(cell) + rng.uniform(0.0, 1.0, size=2) + rng.uniform(0.0, 0.5, size=2)
+
+    def distances_to(self, target: tuple[int, int]) -> dict[tuple[int, int], int]:
+        """Breadth-first step counts along the corridors from every free cell to ``target``."""
+        walls = self.walls
+        distance = {target: 0}
+        queue = collections.deque([target])
+        while queue:
+            row, col = queue.popleft()
+            for cell in ((row - 1, col), (row + 1, col), (row, col - 1), (row, col + 1)):
+                if (0 <= cell[0] < walls.shape[0] and 0 <= cell[1] < walls.shape[1]
+                        and not walls[cell] and cell not in distance):
+                    distance[cell] = distance[row, col] + 1
+                    queue.append(cell)
+        return distance
 
     def cells(self, marker: str | None = None) -> list[tuple[int, int]]:
         """The free cells (all of them, or those marked ``marker``), row by row."""
@@ -170,11 +193,13 @@ TASK_NAMES: tuple[str, ...] = tuple(TASK_MAZES)
 
 
 def maze_of_task(name: str) -> D4RLMaze:
-    """The maze a D4RL antmaze name (or its ``-<n>k`` subset) evaluates in."""
-    base = name.rsplit("-", 1)[0] if name.rsplit("-", 1)[-1].endswith("k") else name
-    if base not in TASK_MAZES:
+    """The maze a D4RL antmaze name (or its ``-<n>k`` subset, resolved as :func:`get_task` resolves it) evaluates
+    in."""
+    env_id = get_task(name).env_id
+    maze = next((maze for maze, maze_env_id in ENV_IDS.items() if maze_env_id == env_id), None)
+    if maze is None:
         raise KeyError(f"{name!r} is not a D4RL antmaze task; known: {list(TASK_NAMES)}.")
-    return MAZES[TASK_MAZES[base]]
+    return MAZES[maze]
 
 
 # Patched ant model values (D4RL's ant, measured against antmaze-umaze-v0).
@@ -330,10 +355,8 @@ class AntMazeD4RLEnv(gym.Env):
         return None if self._goal is None else self._goal.copy()
 
     def sample_goal(self) -> np.ndarray:
-        """Draw a goal as D4RL's evaluation does: the goal cell's centre plus ``U(0, 1) + U(0, 0.5)`` per axis."""
-        rng = self.np_random
-        noise = rng.uniform(0.0, 1.0, size=2) + rng.uniform(0.0, 0.5, size=2)
-        return self.maze.cell_centre(self.maze.goal_cell) + noise
+        """Draw a goal in the maze's evaluation goal cell, as D4RL's evaluation does."""
+        return self.maze.sample_goal(self.maze.goal_cell, self.np_random)
 
     def _set_goal(self, goal: np.ndarray) -> None:
         self._goal = np.asarray(goal, dtype=np.float64).reshape(2).copy()
