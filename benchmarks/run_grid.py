@@ -434,6 +434,20 @@ def _steps_label(steps: int) -> str:
     return f"{steps // 1000}k" if steps >= 1000 and steps % 1000 == 0 else str(steps)
 
 
+def _evaluation_counts_differ(by_method: dict) -> bool:
+    return len({len(r["evaluations"]) for runs in by_method.values() for r in runs}) > 1
+
+
+def row_score(by_method: dict):
+    """How a row's cells read each run: the run's own final score (the mean of its last ``eval.last_n``
+    evaluations) where every run of the row has the same number of evaluations; where the numbers differ, the
+    last 10 would cover all of one run's curve and half of another's, so every run of the row is read over the
+    later half of its evaluations (:func:`torchrl_tels.record.second_half_mean`, Table 1's last 10 of 20)."""
+    if _evaluation_counts_differ(by_method):
+        return lambda run: second_half_mean(run["evaluations"])
+    return lambda run: run["final_normalized_score_mean"]
+
+
 def _budget_cell(by_method: dict) -> str:
     every_run = [r for runs in by_method.values() for r in runs]
     policy = sorted({r["budget"]["policy_steps"] for r in every_run})
@@ -450,6 +464,8 @@ def _budget_cell(by_method: dict) -> str:
         text += "; **evaluation protocols differ: " + ", ".join(f"{e} ep. every {i}" for i, e in protocol) + "**"
     else:
         text += f"; eval {protocol[0][1]} ep. every {_steps_label(protocol[0][0])}"
+    if _evaluation_counts_differ(by_method):
+        text += "; **each run read over the later half of its evaluations**"
     if tsidm:
         shown = [f"{PAPER_TSIDM_EPOCHS} epochs" if s == "None" else f"{s} steps" for s in tsidm]
         text += "; TS-IDM " + " / ".join(shown)
@@ -502,7 +518,8 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         f"`python -m benchmarks.run_grid --table` from `{repo_relative(results_dir)}`.",
         "",
         "D4RL normalized score: per seed, the mean of the last 10 evaluations (each of `eval_episodes` "
-        "deterministic episodes); each cell is the mean ± std over seeds (population std), n = seeds, then "
+        "deterministic episodes; in a row whose runs have different numbers of evaluations, the later half of "
+        "each run's, as the budget column says); each cell is the mean ± std over seeds (population std), n = seeds, then "
         "the TELS paper's Table 1 value (mean ± std over 5 seeds, 100k policy steps). "
         "Every method of a row has the same data, evaluation env, protocol and policy-step budget.",
         "",
@@ -517,7 +534,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
             runs = found[task].get(method, [])
             ours = "—"
             if runs:
-                mean, std = _mean_std([r["final_normalized_score_mean"] for r in runs])
+                mean, std = _mean_std([row_score(found[task])(r) for r in runs])
                 ours = f"**{mean:.1f}** ± {std:.1f} (n={len(runs)})" if len(runs) > 1 else f"**{mean:.1f}** (n=1)"
             ref = paper_cell(paper[method]) if method in paper else "—"
             cells.append(f"{ours} · paper {ref}")
@@ -998,7 +1015,7 @@ def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
             x = j + (i - (len(methods) - 1) / 2) * width
             runs = found[task].get(method, [])
             if runs:
-                mean, std = _mean_std([r["final_normalized_score_mean"] for r in runs])
+                mean, std = _mean_std([row_score(found[task])(r) for r in runs])
                 xs.append(x), means.append(mean), stds.append(std)
             if method in PAPER_TABLE1.get(task, {}):
                 paper_xs.append(x), paper_ys.append(PAPER_TABLE1[task][method][0])

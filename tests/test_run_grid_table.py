@@ -258,7 +258,29 @@ def test_table_command_renews_the_longer_grids_own_tables_it_links(grids):
     linked = re.findall(r"\]\(([^)]*long20k/TABLE\.md)\)", (short / "TABLE.md").read_text())
     assert linked, "the grid's table links the longer grid's own table"
     own = (longer / "TABLE.md").read_text()
-    # its first row, BC on the first task: per seed the mean of the 10 evaluations, 2e-4 · 11,000 = 2.2 and 1.0
+    # its first row, BC on the first task. The row's TELS runs have 2 evaluations and the others 10, so each run
+    # is read over the later half of its evaluations (12k..20k): 2e-4 · 16,000 = 3.2 and 1.0
     row = next(line for line in own.splitlines() if line.startswith(f"| {TASKS[0]} | "))
     bc = [cell.strip() for cell in row.strip("|").split("|")][2]
-    assert bc.startswith("**1.6** ± 0.6 (n=2)"), bc
+    assert bc.startswith("**2.1** ± 1.1 (n=2)"), bc
+
+
+def test_a_row_whose_runs_have_different_numbers_of_evaluations_reads_each_over_its_later_half(tmp_path):
+    task = TASKS[0]
+    # BC: 20 evaluations every 5k to 100k, rising 1 per 5k (its last 10 are its later half: 11..20, mean 15.5);
+    # TELS: 10 evaluations every 2k to 20k, rising 10 per 2k (its last 10 are all of them, mean 55; the later
+    # half 60..100, mean 80)
+    _write(tmp_path, "bc", task, _record(0, 100000, 5000, lambda s: s / 5000))
+    _write(tmp_path, "tels", task, _record(0, 20000, 2000, lambda s: 10 * s / 2000))
+    row = [line for line in run_grid.render_table(tmp_path).read_text().splitlines() if line.startswith(f"| {task} |")]
+    cells = [cell.strip() for cell in row[0].strip("|").split("|")]
+    assert "later half" in cells[1]
+    assert cells[2].startswith("**15.5** (n=1)")
+    tels = cells[2 + run_grid.TABLE_COLUMNS.index("tels")]
+    assert tels.startswith("**80.0** (n=1)"), tels
+    # a row whose runs share their number of evaluations keeps each run's own final score
+    _write(tmp_path, "tels", task, _record(0, 100000, 5000, lambda s: 2 * s / 5000))
+    row = [line for line in run_grid.render_table(tmp_path).read_text().splitlines() if line.startswith(f"| {task} |")]
+    cells = [cell.strip() for cell in row[0].strip("|").split("|")]
+    assert "later half" not in cells[1]
+    assert cells[2 + run_grid.TABLE_COLUMNS.index("tels")].startswith("**31.0** (n=1)")
