@@ -69,9 +69,14 @@ SUB_GRIDS = {
 #: TELS with a reduced TS-IDM (paper Table 3): ``tels_<variant>`` trains with ``tsidm.ablation=<variant>``.
 ABLATIONS = {"tels_ae": "ae", "tels_dyn": "dyn", "tels_ode": "ode"}
 GRID_METHODS = ("tels", *BASELINES)  # tels first: iql_latent reuses its TS-IDM; ablations only on request
-#: TELS run by the recipe: the default, the paper's reading (domain=paper, or adroit_paper on Adroit), ablations
-TELS_METHODS = ("tels", "tels_paper", *ABLATIONS)
-METHODS = (*GRID_METHODS, "tels_paper", *ABLATIONS)
+#: TELS variants that change stage 2 only, as recipe overrides. ``tels_alpha0``: uniform guide weights (α = 0 in
+#: Eq. 10), the best maze variant found on umaze. Their stage 1 is the default's, so a run can start stage 2 from
+#: the default run's TS-IDM (``--tsidm-from <its work dir> --tsidm-from-method tels``).
+STAGE2_VARIANTS = {"tels_alpha0": ("guide.alpha=0",)}
+#: TELS run by the recipe: the default, the paper's reading (domain=paper, or adroit_paper on Adroit), ablations,
+#: stage-2 variants
+TELS_METHODS = ("tels", "tels_paper", *ABLATIONS, *STAGE2_VARIANTS)
+METHODS = (*GRID_METHODS, "tels_paper", *ABLATIONS, *STAGE2_VARIANTS)
 TASKS = (
     "hopper-medium-v2-10k",
     "hopper-medium-replay-v2-10k",
@@ -97,8 +102,8 @@ ANTMAZE_100K_TASKS = (
 SEEDS = (0, 1, 2)
 LABELS = {"bc": "BC", "td3bc": "TD3+BC", "iql": "IQL", "iql_latent": "IQL (TS-IDM latent)", "tels": "TELS",
           "tels_paper": "TELS (paper's reading)", "tels_ae": "φ/ψ + h_inv", "tels_dyn": "↑ + h_fwd, h_rvs", "tels_ode": "↑ + ℓ_ode",
-          "tsrl": "TSRL"}
-TABLE_COLUMNS = ("bc", "td3bc", "iql", "iql_latent", "tels", "tels_paper")
+          "tels_alpha0": "TELS (α = 0)", "tsrl": "TSRL"}
+TABLE_COLUMNS = ("bc", "td3bc", "iql", "iql_latent", "tels", "tels_paper", *STAGE2_VARIANTS)
 
 #: TELS paper, Table 1: normalized score, mean and std over 5 seeds (final 10 evaluations), same 10k sets.
 PAPER_TABLE1 = {
@@ -248,6 +253,8 @@ def run_tels(task: str, seed: int, args, wandb_mode: str, method: str = "tels") 
     ]
     if method in ABLATIONS:
         overrides += [f"tsidm.ablation={ABLATIONS[method]}", f"logger.exp_name={method}_{task}_seed{seed}"]
+    if method in STAGE2_VARIANTS:
+        overrides += [*STAGE2_VARIANTS[method], f"logger.exp_name={method}_{task}_seed{seed}"]
     reused = None
     started_from = _recorded_checkpoint(run_dir)
     if started_from is not None:  # an interrupted or finished run resumes with the TS-IDM it started from
@@ -511,6 +518,8 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
     found = load_results(results_dir)
     longer = {folder: load_results(folder) for folder in longer_dirs}
     tasks = [t for t in TASKS if t in found] + sorted(t for t in found if t not in TASKS)
+    # a stage-2 variant gets a column only in a grid that ran it
+    columns = [m for m in TABLE_COLUMNS if m not in STAGE2_VARIANTS or any(m in found[t] for t in tasks)]
     lines = [
         "# TELS against TorchRL's offline baselines on Table 1's reduced-size D4RL sets",
         "",
@@ -524,13 +533,13 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         "Every method of a row has the same data, evaluation env, protocol and policy-step budget.",
         "",
         *_changed_hyperparameters(found),
-        "| task | budget | " + " | ".join(LABELS[m] for m in TABLE_COLUMNS) + " | TSRL (paper) |",
-        "|---|---|" + "---|" * (len(TABLE_COLUMNS) + 1),
+        "| task | budget | " + " | ".join(LABELS[m] for m in columns) + " | TSRL (paper) |",
+        "|---|---|" + "---|" * (len(columns) + 1),
     ]
     for task in tasks:
         paper = PAPER_TABLE1.get(task, {})
         cells = []
-        for method in TABLE_COLUMNS:
+        for method in columns:
             runs = found[task].get(method, [])
             ours = "—"
             if runs:
@@ -541,7 +550,7 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         tsrl = paper_cell(paper["tsrl"]) if "tsrl" in paper else "—"
         lines.append(f"| {task} | {_budget_cell(found[task])} | " + " | ".join(cells) + f" | {tsrl} |")
     if not tasks:
-        lines.append("| (no results yet) |" + " |" * (len(TABLE_COLUMNS) + 2))
+        lines.append("| (no results yet) |" + " |" * (len(columns) + 2))
     sub_grids = [(name, what) for name, what in SUB_GRIDS.items() if (results_dir / name / "TABLE.md").is_file()]
     if sub_grids:
         lines += ["", "Other rows, each grid with a table of its own (their TELS column is the default as it stands): "
@@ -1201,8 +1210,11 @@ def parse_args(argv=None):
         if not args.tsidm_from.is_dir():
             parser.error(f"--tsidm-from folder not found: {args.tsidm_from}")
         args.tsidm_from = args.tsidm_from.resolve()
-        if args.tsidm_from == args.work_dir:
-            parser.error("--tsidm-from names --work-dir itself: give the earlier grid's work dir, and this grid a new one")
+        # one work dir may lend one arm's TS-IDMs to another (tels_alpha0 from tels), never a method to itself
+        if args.tsidm_from == args.work_dir and (args.tsidm_from_method is None
+                                                 or args.tsidm_from_method in (args.method or METHODS)):
+            parser.error("--tsidm-from names --work-dir itself: give the earlier grid's work dir, and this grid a "
+                         "new one (or, from another arm of this grid, --tsidm-from-method that arm)")
     elif args.tsidm_from_method is not None:
         parser.error("--tsidm-from-method needs --tsidm-from: the earlier grid's work dir")
     args.longer = [folder.resolve() for folder in args.longer]

@@ -164,3 +164,24 @@ def test_the_report_pairs_two_runs_only_on_one_tsidm():
                                            {"beta": 1.0, "final_loss": 3.1}]}
     assert same_tsidm(auto, {**alpha1, "beta": 0.01})
     assert not same_tsidm({**auto, "beta": 1.0}, {**alpha1, "beta": 0.01})
+
+
+def test_the_alpha0_arm_sets_alpha_to_zero_and_starts_from_the_default_runs_stage1(tmp_path, monkeypatch):
+    """α = 0 changes stage 2 only, so the arm's stage 1 is the default's: it may start from that run's TS-IDM."""
+    calls: list = []
+    monkeypatch.setattr(run_grid, "run_recipe", _fake_recipe(calls))
+    task = "antmaze-umaze-v0-10k"
+
+    def grid(method: str, *extra: str):
+        return run_grid.parse_args(["--method", method, "--task", task, "--seed", "2", "--steps", "10",
+                                    "--tsidm-steps", "5", "--eval-interval", "5", "--results-dir",
+                                    str(tmp_path / "results"), "--work-dir", str(tmp_path / "work"), *extra])
+
+    run_grid.run_one("tels", task, 2, grid("tels"))
+    assert not any(o.startswith("guide.alpha=") for o in calls[-1])
+    run_grid.run_one("tels_alpha0", task, 2, grid("tels_alpha0", "--tsidm-from", str(tmp_path / "work"),
+                                                  "--tsidm-from-method", "tels"))
+    assert "guide.alpha=0" in calls[-1] and "domain=maze" in calls[-1]
+    source = tmp_path / "work" / "tels" / task / "seed2" / "tsidm.pt"
+    assert _checkpoint_overrides(calls[-1]) == [f"tsidm.checkpoint={source}"]
+    assert run_grid.result_path(tmp_path / "results", "tels_alpha0", task, 2).is_file()
