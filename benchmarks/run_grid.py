@@ -537,13 +537,13 @@ def render_table(results_dir: Path, longer_dirs: tuple[Path, ...] = ()) -> Path:
         "|---|---|" + "---|" * (len(columns) + 1),
     ]
     for task in tasks:
-        paper = PAPER_TABLE1.get(task, {})
+        paper, score = PAPER_TABLE1.get(task, {}), row_score(found[task])
         cells = []
         for method in columns:
             runs = found[task].get(method, [])
             ours = "—"
             if runs:
-                mean, std = _mean_std([row_score(found[task])(r) for r in runs])
+                mean, std = _mean_std([score(r) for r in runs])
                 ours = f"**{mean:.1f}** ± {std:.1f} (n={len(runs)})" if len(runs) > 1 else f"**{mean:.1f}** (n=1)"
             ref = paper_cell(paper[method]) if method in paper else "—"
             cells.append(f"{ours} · paper {ref}")
@@ -1018,13 +1018,14 @@ def render_plots(found: dict, tasks: list[str], folder: Path) -> list[Path]:
     colors = {m: f"C{i}" for i, m in enumerate(TABLE_COLUMNS)}
     fig, ax = plt.subplots(figsize=(max(6, 2.2 * len(tasks)), 4))
     width = 0.8 / max(len(methods), 1)
+    score_of = {task: row_score(found[task]) for task in tasks}
     for i, method in enumerate(methods):
         xs, means, stds, paper_xs, paper_ys = [], [], [], [], []
         for j, task in enumerate(tasks):
             x = j + (i - (len(methods) - 1) / 2) * width
             runs = found[task].get(method, [])
             if runs:
-                mean, std = _mean_std([row_score(found[task])(r) for r in runs])
+                mean, std = _mean_std([score_of[task](r) for r in runs])
                 xs.append(x), means.append(mean), stds.append(std)
             if method in PAPER_TABLE1.get(task, {}):
                 paper_xs.append(x), paper_ys.append(PAPER_TABLE1[task][method][0])

@@ -346,15 +346,14 @@ def antmaze_section() -> list[str]:
              "rate averaged over the later half of the evaluations. Baselines: 100k policy steps with the maze "
              "settings settled on umaze (IQL: the authors' actor and AntMaze values; rewards r − 1).", "",
              *_arms_header(ANTMAZE_ARMS)]
-    scores = _antmaze_scores()
-    for task in run_grid.ANTMAZE_100K_TASKS:
+    scores, tasks = _antmaze_scores(), run_grid.ANTMAZE_100K_TASKS
+    for task in tasks:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, m)) else "—" for m, _ in ANTMAZE_ARMS]
         lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
         lines.append("| | ours | " + " | ".join(stats.interval_cell(scores[task, m]) for m, _ in ANTMAZE_ARMS) + " |")
     readings, found = _antmaze_readings(scores), sum(map(len, scores.values()))
     reach = _reach_lines()
     lines += ["", *reach] if reach else []
-    tasks = run_grid.ANTMAZE_100K_TASKS
     per_arm = 3 * len(tasks)
     counts = ", ".join(f"{label} {sum(len(scores[t, m]) for t in tasks)} of {per_arm}" for m, label in ANTMAZE_ARMS)
     lines += ["", "**Verdict so far** " + _antmaze_verdict(readings),

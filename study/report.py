@@ -478,7 +478,8 @@ def render(overview_rows=None) -> str:
         "edit. Every table behind it: [RESULTS.md](RESULTS.md) (the study's), "
         "[TABLE.md](../benchmarks/results/TABLE.md) (the baseline grid's); what was run, when and why: "
         "[LOG.md](LOG.md); the study's scripts: [README.md](README.md).", "",
-        *overview.figure_section(overview_rows), *verdict(d), *overview.held_out_verdict_line(), *overview.antmaze_verdict_line(), *table1(d), *overview.held_out_section(),
+        *overview.figure_section(overview_rows), *verdict(d), *overview.held_out_verdict_line(),
+        *overview.antmaze_verdict_line(), *table1(d), *overview.held_out_section(),
         *domains.section(), *overview.antmaze_section(), *mechanisms(d), *external(d), *deviations(d),
         *check_yourself(d)])
 
