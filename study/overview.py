@@ -340,7 +340,11 @@ def antmaze_section() -> list[str]:
     lines = ["## AntMaze medium and large at 100k", "",
              "Data: the four sets of `../shared/datasets/antmaze/`, 100k transitions each, regenerated with D4RL's "
              "goal-reaching policy, ant, maze maps, waypoint controller and noise (sha256 in its `manifest.json`; "
-             "`recipes/collect_antmaze.py` makes new samples of the same process). Evaluation: D4RL's test maze, ant "
+             "`recipes/collect_antmaze.py` makes new samples of the same process). Each set is 100 whole episodes of "
+             "1001 transitions. The paper is not explicit about how its 100k were drawn from D4RL's 1M: App. D.1 says "
+             "it randomly sub-samples trajectories, and its footnote 1 and the same paragraph say \"100k random "
+             "samples\". Our sets follow the first reading; under the second, the 100k transitions would come from "
+             "about 1,000 episodes, about 100 from each. Evaluation: D4RL's test maze, ant "
              "dynamics and frame (`torchrl_tels.envs.antmaze`), a new goal at every reset, 1000-step episodes, "
              "success within 0.5; 20 episodes every 5,000 steps (TELS: every 2,000), the score 100 × the success "
              "rate averaged over the later half of the evaluations. Baselines: 100k policy steps with the maze "
