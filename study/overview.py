@@ -226,8 +226,25 @@ def held_out_section() -> list[str]:
                  "Missing (still to run, with the command above, which skips what exists): "
                  + ", ".join(missing) + ". ")
               + "Commits: " + (", ".join(f"`{c[:7]}`" for c in sorted(commits)) or "none") + ".", ""]
+    lines += _frozen_lines()
     lines += _held_out_verdict()
     return lines
+
+
+def _frozen_lines() -> list[str]:
+    """How many of the default's evaluations stood still, per row: a low score there is the policy freezing."""
+    counts = []
+    for task in run_grid.HELD_OUT_TASKS:
+        evaluations = [e for run in domains.runs("tels", task, HELD_OUT) for e in run["evaluations"]]
+        if evaluations:
+            counts.append(f"{task.removesuffix('-v2-10k')} {sum(bool(e.get('frozen')) for e in evaluations)} "
+                          f"of {len(evaluations)}")
+    if not counts:
+        return []
+    return ["**Where the default stands still.** An evaluation is flagged frozen when the guide's proposed latent "
+            "steps and the actions' spread both stay below a quarter of the data's (`torchrl_tels.diagnostics."
+            "is_frozen`): the agent barely moves. The default's evaluations flagged frozen: " + "; ".join(counts)
+            + ".", ""]
 
 
 def held_out_verdict_line() -> list[str]:

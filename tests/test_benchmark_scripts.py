@@ -260,3 +260,27 @@ def test_overview_rows_read_the_grid_and_pick_the_best_other_baseline():
     assert row.bc == pytest.approx(direct["bc"])
     best = max(("td3bc", "iql"), key=lambda m: statistics.fmean(direct[m]))
     assert row.best[0] == best and row.best[1] == pytest.approx(direct[best])
+
+
+def test_frozen_line_counts_the_defaults_flagged_evaluations(tmp_path, monkeypatch):
+    """The five rows' frozen line against a hand count: two runs of 3 and 2 evaluations, 2 and 1 flagged, give
+    "3 of 5"; a row with no runs is left out; a row whose runs never froze reads 0."""
+    from benchmarks import run_grid
+    from study import overview
+
+    def write(task, seed, flags):
+        path = tmp_path / "tels" / task / f"seed{seed}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        evaluations = [{"step": 500 * (i + 1), "score": 1.0, **({} if f is None else {"frozen": f})}
+                       for i, f in enumerate(flags)]
+        path.write_text(json.dumps({"seed": seed, "budget": {"policy_steps": 5000}, "evaluations": evaluations}))
+
+    first, second, third = run_grid.HELD_OUT_TASKS[:3]
+    write(first, 0, [True, True, False])
+    write(first, 1, [True, None])
+    write(second, 0, [False, False])
+    monkeypatch.setattr(overview, "HELD_OUT", tmp_path)
+    line = overview._frozen_lines()[0]
+    assert f"{first.removesuffix('-v2-10k')} 3 of 5" in line
+    assert f"{second.removesuffix('-v2-10k')} 0 of 2" in line
+    assert third.removesuffix("-v2-10k") not in line
