@@ -241,10 +241,28 @@ def _frozen_lines() -> list[str]:
                           f"of {len(evaluations)}")
     if not counts:
         return []
+    still = "; ".join(f"{task.removesuffix('-v2-10k')} {100 * share:.1f} %" for task, share in _still_shares().items())
     return ["**Where the default stands still.** An evaluation is flagged frozen when the guide's proposed latent "
             "steps and the actions' spread both stay below a quarter of the data's (`torchrl_tels.diagnostics."
             "is_frozen`): the agent barely moves. The default's evaluations flagged frozen: " + "; ".join(counts)
-            + ".", ""]
+            + f". The data's share of transitions whose forward velocity is below {STILL_SPEED}: {still}.", ""]
+
+
+#: the observation entry holding the torso's forward velocity (qvel[0], after qpos without x)
+FORWARD_VELOCITY_INDEX = {"hopper": 5, "walker2d": 8, "halfcheetah": 8}
+#: a forward velocity below this counts as standing still
+STILL_SPEED = 0.5
+
+
+def _still_shares() -> dict[str, float]:
+    """Per held-out set, the fraction of its transitions whose forward velocity is below :data:`STILL_SPEED`."""
+    from torchrl_tels.data import load_dataset
+
+    shares = {}
+    for task in run_grid.HELD_OUT_TASKS:
+        velocity = load_dataset(task)["observation"][:, FORWARD_VELOCITY_INDEX[task.split("-")[0]]]
+        shares[task] = (velocity < STILL_SPEED).float().mean().item()
+    return shares
 
 
 def held_out_verdict_line() -> list[str]:

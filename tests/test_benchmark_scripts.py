@@ -280,7 +280,30 @@ def test_frozen_line_counts_the_defaults_flagged_evaluations(tmp_path, monkeypat
     write(first, 1, [True, None])
     write(second, 0, [False, False])
     monkeypatch.setattr(overview, "HELD_OUT", tmp_path)
-    line = overview._frozen_lines()[0]
-    assert f"{first.removesuffix('-v2-10k')} 3 of 5" in line
-    assert f"{second.removesuffix('-v2-10k')} 0 of 2" in line
-    assert third.removesuffix("-v2-10k") not in line
+    frozen, still = overview._frozen_lines()[0].split(". The data's share")
+    assert f"{first.removesuffix('-v2-10k')} 3 of 5" in frozen
+    assert f"{second.removesuffix('-v2-10k')} 0 of 2" in frozen
+    assert third.removesuffix("-v2-10k") not in frozen
+    from torchrl_tels.data import load_dataset
+
+    velocity = load_dataset(first)["observation"][:, overview.FORWARD_VELOCITY_INDEX[first.split("-")[0]]].numpy()
+    assert f"{first.removesuffix('-v2-10k')} {100 * (velocity < 0.5).mean():.1f} %" in still
+
+
+@pytest.mark.parametrize("task", ["hopper-medium-expert-v2-10k", "walker2d-medium-replay-v2-10k",
+                                  "halfcheetah-medium-replay-v2-10k"])
+def test_forward_velocity_index_reads_the_torsos_x_velocity(task):
+    """The report's standing-still share reads the observation entry the env fills from qvel[0]."""
+    import gymnasium as gym
+    import numpy as np
+
+    from study import overview
+    from torchrl_tels.envs.tasks import get_task
+
+    env = gym.make(get_task(task).env_id)
+    env.reset(seed=0)
+    obs, *_ = env.step(env.action_space.sample())
+    index = overview.FORWARD_VELOCITY_INDEX[task.split("-")[0]]
+    assert obs[index] == pytest.approx(env.unwrapped.data.qvel[0])
+    assert np.count_nonzero(np.isclose(obs, env.unwrapped.data.qvel[0])) == 1
+    env.close()
