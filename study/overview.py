@@ -301,7 +301,17 @@ def _held_out_verdict() -> list[str]:
     relation = "above" if d_low > b_high else "below" if d_high < b_low else "level with"
     return [f"**Verdict over the nine rows × 3 seeds** (pre-registered reading): the default's IQM "
             f"{d_iqm:.1f} [{d_low:.1f}, {d_high:.1f}] is {relation} BC's, {b_iqm:.1f} [{b_low:.1f}, {b_high:.1f}] "
-            "(stratified-bootstrap 95 % intervals).", ""]
+            "(stratified-bootstrap 95 % intervals). "
+            + against_table1_tels(tasks, default.mean(0).tolist(), [_paper(t, "tels") for t in tasks]), ""]
+
+
+def against_table1_tels(tasks, means: list[float], paper: list[tuple[float, float]]) -> str:
+    """The default's per-row means against Table 1's TELS: both averages, and the rows where ours reaches the
+    paper's mean − std."""
+    reached = [t.removesuffix("-v2-10k") for t, ours, (mean, std) in zip(tasks, means, paper) if ours >= mean - std]
+    return (f"Table 1's TELS averages {sum(m for m, _ in paper) / len(paper):.1f} over these rows, the default "
+            f"{sum(means) / len(means):.1f}; the default reaches Table 1's mean − std on {len(reached)} of "
+            f"{len(tasks)} ({', '.join(reached) or 'none'}).")
 
 
 def _reach_lines() -> list[str]:

@@ -307,3 +307,14 @@ def test_forward_velocity_index_reads_the_torsos_x_velocity(task):
     assert obs[index] == pytest.approx(env.unwrapped.data.qvel[0])
     assert np.count_nonzero(np.isclose(obs, env.unwrapped.data.qvel[0])) == 1
     env.close()
+
+
+def test_against_table1_tels_counts_rows_at_the_papers_mean_minus_std():
+    """Hand values: Table 1 (80 ± 10, 40 ± 5, 30 ± 0) against ours (70, 30, 30): averages 50.0 and 43.3; rows 1
+    (70 ≥ 70) and 3 (30 ≥ 30) reach mean − std, row 2 (30 < 35) does not."""
+    from study import overview
+
+    line = overview.against_table1_tels(["a-v2-10k", "b-v2-10k", "c-v2-10k"], [70.0, 30.0, 30.0],
+                                        [(80.0, 10.0), (40.0, 5.0), (30.0, 0.0)])
+    assert "averages 50.0 over these rows, the default 43.3" in line
+    assert "on 2 of 3 (a, c)" in line
