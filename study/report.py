@@ -170,6 +170,7 @@ def verdict(d: Data) -> list[str]:
         f"({tels_label.removeprefix('TELS at ')}), {_iqm_text(tels_long)}. The study traces the gap to "
         "the values: learned from 10k transitions, they order states but not one state's alternatives, so the gain "
         "the guide promises is never delivered, and TELS acts much as BC does (mechanisms below).", "",
+        *overview.held_out_verdict_line(),
         *(line + "\n" for line in domains.verdict_lines()),
         "Details: [AntMaze and Adroit](#antmaze-and-adroit-beside-tables-1-and-6).", ""]
 
@@ -478,7 +479,7 @@ def render(overview_rows=None) -> str:
         "edit. Every table behind it: [RESULTS.md](RESULTS.md) (the study's), "
         "[TABLE.md](../benchmarks/results/TABLE.md) (the baseline grid's); what was run, when and why: "
         "[LOG.md](LOG.md); the study's scripts: [README.md](README.md).", "",
-        *overview.figure_section(overview_rows), *verdict(d), *overview.held_out_verdict_line(),
+        *overview.figure_section(overview_rows), *verdict(d),
         *overview.antmaze_verdict_line(), *table1(d), *overview.held_out_section(),
         *domains.section(), *overview.antmaze_section(), *mechanisms(d), *external(d), *deviations(d),
         *check_yourself(d)])
