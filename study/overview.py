@@ -320,8 +320,8 @@ def against_table1_tels(tasks, means: list[float], paper: list[tuple[float, floa
     reached = [t.removesuffix("-v2-10k") for t, ours, (mean, std) in zip(tasks, means, paper, strict=True)
                if ours >= mean - (std or 0.0)]
     return (f"Table 1's TELS averages {sum(m for m, _ in paper) / len(paper):.1f} over these rows, the default "
-            f"{sum(means) / len(means):.1f} (mean of its row means); it reaches Table 1's mean − std on {len(reached)} of "
-            f"{len(tasks)} ({', '.join(reached) or 'none'}).")
+            f"{sum(means) / len(means):.1f} (mean of its row means); it reaches Table 1's mean − std on "
+            f"{len(reached)} of {len(tasks)} ({', '.join(reached) or 'none'}).")
 
 
 def _reach_lines() -> list[str]:
@@ -407,7 +407,8 @@ def antmaze_section() -> list[str]:
              "from each. Evaluation: D4RL's test maze, ant dynamics and frame (`torchrl_tels.envs.antmaze`), a new "
              "goal at every reset, 1000-step episodes, success within 0.5; 20 episodes every 5,000 steps (TELS: "
              "every 2,000), the score 100 × the success rate averaged over the later half of the evaluations. "
-             "Baselines: 100k policy steps with the maze settings settled on umaze (IQL: the authors' actor and AntMaze values; rewards r − 1).", "",
+             "Baselines: 100k policy steps with the maze settings settled on umaze (IQL: the authors' actor and "
+             "AntMaze values; rewards r − 1).", "",
              *_arms_header(ANTMAZE_ARMS)]
     scores, tasks = _antmaze_scores(), run_grid.ANTMAZE_100K_TASKS
     for task in tasks:
