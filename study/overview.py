@@ -196,8 +196,9 @@ def _arms_header(arms) -> list[str]:
     return ["| set | scores | " + " | ".join(label for _, label in arms) + " |", "|---|---|" + "---|" * len(arms)]
 
 
-def held_out_section() -> list[str]:
-    """The five rows nothing was tuned on: every arm beside Table 1, the pre-registered reading first."""
+def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]:
+    """The five rows nothing was tuned on: every arm beside Table 1, the pre-registered reading first.
+    ``verdict`` is :func:`held_out_verdict`'s answer where the caller already has it."""
     lines = ["## Table 1's other five locomotion rows: a pre-registered test of the defaults", "",
              "Nothing in the project was tuned on these five sets. Their grid ran the defaults unchanged, at the "
              "study budget and protocol of the four tuned sets (`python -m benchmarks.run_grid --grid --method bc "
@@ -207,6 +208,7 @@ def held_out_section() -> list[str]:
              "as such below the pre-registered ones; there are none.", "", *_arms_header(HELD_OUT_ARMS)]
     commits = set()
     counts = {m: 0 for m, _ in HELD_OUT_ARMS}
+    default_runs = {}
     for task in run_grid.HELD_OUT_TASKS:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, "tels" if m.startswith("tels") else m)) else "—"
                  for m, _ in HELD_OUT_ARMS]
@@ -215,6 +217,8 @@ def held_out_section() -> list[str]:
         cells = []
         for method, _ in HELD_OUT_ARMS:
             runs = domains.runs(method, task, HELD_OUT)
+            if method == "tels":
+                default_runs[task] = runs
             counts[method] += len(runs)
             commits.update((r.get("code") or {}).get("commit") or "unrecorded" for r in runs)
             cells.append(stats.interval_cell(domains.scores(runs)))
@@ -226,17 +230,17 @@ def held_out_section() -> list[str]:
                  "Missing (still to run, with the command above, which skips what exists): "
                  + ", ".join(missing) + ". ")
               + "Commits: " + (", ".join(f"`{c[:7]}`" for c in sorted(commits)) or "none") + ".", ""]
-    lines += _frozen_lines()
-    lines += _held_out_verdict()[0]
+    lines += _frozen_lines(default_runs)
+    lines += (verdict or held_out_verdict())[0]
     return lines
 
 
-def _frozen_lines() -> list[str]:
-    """How many of the default's evaluations froze, per row, beside how much of each row's data stands still."""
+def _frozen_lines(default_runs: dict[str, list[dict]]) -> list[str]:
+    """How many of the default's evaluations froze, per row (``default_runs``: the default's runs by set), beside how
+    much of each row's data stands still."""
     frozen = {}
-    for task in run_grid.HELD_OUT_TASKS:
-        flags = [e["frozen"] for run in domains.runs("tels", task, HELD_OUT) for e in run["evaluations"]
-                 if "frozen" in e]
+    for task, runs in default_runs.items():
+        flags = [e["frozen"] for run in runs for e in run["evaluations"] if "frozen" in e]
         if flags:
             frozen[task] = (sum(flags), len(flags))
     if not frozen:
@@ -272,22 +276,23 @@ def _still_shares() -> dict[str, float]:
     return shares
 
 
-def held_out_verdict_line() -> list[str]:
-    """The pre-registered rows for the report's opening verdict: the default against BC on each row run so far."""
+def held_out_verdict_line(verdict: tuple[list[str], bool] | None = None) -> list[str]:
+    """The pre-registered rows for the report's opening verdict: the default against BC on each row run so far.
+    ``verdict`` is :func:`held_out_verdict`'s answer where the caller already has it."""
     pairs = []
     for task in run_grid.HELD_OUT_TASKS:
         default, bc = _scores("tels", task, HELD_OUT), _scores("bc", task, HELD_OUT)
         if default and bc:
             pairs.append(f"{task.removesuffix('-v2-10k')}: the default {sum(default) / len(default):.1f} (n={len(default)}), "
                          f"BC {sum(bc) / len(bc):.1f} (n={len(bc)}), Table 1's TELS {_paper(task, 'tels')[0]:.1f}")
-    verdict, complete = _held_out_verdict()
+    verdict, complete = verdict or held_out_verdict()
     return ["**Table 1's five other locomotion rows** (pre-registered; nothing was tuned on them)"
             + (": " if complete else ", so far: ") + ("; ".join(pairs) if pairs else "no runs") + ". "
             + verdict[0].replace("**Verdict over the nine rows**:", "The verdict over the nine rows:")
             + " Details: [the five rows](#table-1s-other-five-locomotion-rows-a-pre-registered-test-of-the-defaults).", ""]
 
 
-def _held_out_verdict() -> tuple[list[str], bool]:
+def held_out_verdict() -> tuple[list[str], bool]:
     """The default against BC over all nine locomotion rows, once every cell has three seeds, and whether every
     cell has them."""
     import numpy as np

@@ -273,14 +273,16 @@ def test_frozen_line_counts_the_defaults_flagged_evaluations(tmp_path, monkeypat
         path.parent.mkdir(parents=True, exist_ok=True)
         evaluations = [{"step": 500 * (i + 1), "score": 1.0, **({} if f is None else {"frozen": f})}
                        for i, f in enumerate(flags)]
-        path.write_text(json.dumps({"seed": seed, "budget": {"policy_steps": 5000}, "evaluations": evaluations}))
+        path.write_text(json.dumps({"seed": seed, "budget": {"policy_steps": 5000}, "evaluations": evaluations,
+                                    "final_over_last_n_evaluations": len(evaluations)}))
 
     first, second, third = run_grid.HELD_OUT_TASKS[:3]
     write(first, 0, [True, True, False])
     write(first, 1, [True, None])
     write(second, 0, [False, False])
     monkeypatch.setattr(overview, "HELD_OUT", tmp_path)
-    frozen, still = overview._frozen_lines()[0].split(". The data's share")
+    paragraph = next(line for line in overview.held_out_section() if line.startswith("**Where the default freezes"))
+    frozen, still = paragraph.split(". The data's share")
     assert "Where the default freezes" in frozen
     assert f"{first.removesuffix('-v2-10k')} 3 of 4" in frozen
     assert f"{second.removesuffix('-v2-10k')} 0 of 2" in frozen
