@@ -262,6 +262,37 @@ def test_overview_rows_read_the_grid_and_pick_the_best_other_baseline():
     assert row.best[0] == best and row.best[1] == pytest.approx(direct[best])
 
 
+def test_longer_held_out_lines_score_the_later_half_at_20k_only(tmp_path, monkeypatch):
+    """The five rows' 20k arm: a cell is the mean over seeds of each run's later-half mean, runs at another budget
+    in the same folder are left out, and the default's cell counts its frozen evaluations."""
+    from benchmarks import run_grid
+    from study import overview
+
+    monkeypatch.setattr(overview, "HELD_OUT_LONG", tmp_path)
+    assert "not run yet" in overview.held_out_longer_lines()[0]
+
+    def write(method, task, seed, steps, scores, frozen=None):
+        path = tmp_path / method / task / f"seed{seed}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        evaluations = [{"step": steps * (i + 1) // len(scores), "score": s,
+                        **({} if frozen is None else {"frozen": frozen[i]})} for i, s in enumerate(scores)]
+        path.write_text(json.dumps({"seed": seed, "budget": {"policy_steps": steps}, "evaluations": evaluations,
+                                    "final_over_last_n_evaluations": len(scores)}))
+
+    task = run_grid.HELD_OUT_TASKS[-1]
+    write("tels", task, 0, 20_000, [0.0, 0.0, 10.0, 20.0], frozen=[True, True, False, False])
+    write("tels", task, 1, 20_000, [0.0, 0.0, 30.0, 40.0], frozen=[True, False, False, True])
+    write("bc", task, 0, 5_000, [50.0, 50.0])  # the study budget: not this table's
+    lines = overview.held_out_longer_lines()
+    row = next(line for line in lines if line.startswith(f"| {task} |"))
+    default_cell, bc_cell = row.split(" | ")[1:3]
+    later_halves = [15.0, 35.0]  # (10 + 20) / 2 and (30 + 40) / 2
+    assert default_cell.startswith(f"**{sum(later_halves) / 2:.1f}** [")
+    assert "(n=2; frozen 4 of 8)" in default_cell
+    assert bc_cell.strip(" |") == "no runs"
+    assert "Runs: 2 of 30." in lines
+
+
 def test_frozen_line_counts_the_defaults_flagged_evaluations(tmp_path, monkeypatch):
     """The five rows' frozen line against a hand count: two runs of 3 and 2 evaluations, 2 and 1 flagged and one
     unrecorded, give "3 of 4"; a row with no runs is left out; a row whose runs never froze reads 0."""
