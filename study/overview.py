@@ -264,7 +264,8 @@ def held_out_longer_lines() -> list[str]:
     table = [head + "The default and BC, the arms the nine-row verdict compares, with the tuned "
              "sets' longer protocol (`long20k`: 10 episodes every 2k steps, a run's score the mean of the later half "
              "of its evaluations); the default's stage 2 starts from the TS-IDM of its study-budget run of the same "
-             f"seed, in that grid's `--work-dir` (`{HELD_OUT_LONG_COMMAND}`). The default's cell counts its evaluations flagged frozen.", "",
+             f"seed, in that grid's `--work-dir` (`{HELD_OUT_LONG_COMMAND}`). The default's cell counts its "
+             "evaluations flagged frozen.", "",
              "| set | " + " | ".join(label for _, label in HELD_OUT_LONG_ARMS) + " |",
              "|---|" + "---|" * len(HELD_OUT_LONG_ARMS)]
     found = 0
@@ -327,7 +328,8 @@ def held_out_verdict_line(verdict: tuple[list[str], bool] | None = None) -> list
     for task in run_grid.HELD_OUT_TASKS:
         default, bc = _scores("tels", task, HELD_OUT), _scores("bc", task, HELD_OUT)
         if default and bc:
-            pairs.append(f"{task.removesuffix('-v2-10k')}: the default {sum(default) / len(default):.1f} (n={len(default)}), "
+            pairs.append(f"{task.removesuffix('-v2-10k')}: the default {sum(default) / len(default):.1f} "
+                         f"(n={len(default)}), "
                          f"BC {sum(bc) / len(bc):.1f} (n={len(bc)}), Table 1's TELS {_paper(task, 'tels')[0]:.1f}")
     verdict, complete = verdict or held_out_verdict()
     return ["**Table 1's five other locomotion rows** (pre-registered; nothing was tuned on them)"
