@@ -222,15 +222,28 @@ def _maze_guide_rows() -> list[str]:
                 continue
             regions = weights.get("regions", {})
             start, goal = regions.get("0,0", {}), regions.get("0,2", {})
-            history = record["diagnostics"].get("guide_history", {}).get("value/state_value", [])
-            v = " → ".join(f"{value:.1f} (step {step})" for step, value in
-                           (history[0], history[len(history) // 2], history[-1])) if history else "not logged"
-            rows.append(f"| {task} | {steps:,} | {record['seed']} | {weights['effective_sample_fraction']:.3f} | "
-                        f"{weights['clipped_fraction']:.1%} | {start.get('data_share', 0):.1%} → "
-                        f"{start.get('weight_share', 0):.1%} | {goal.get('data_share', 0):.1%} → "
-                        f"{goal.get('weight_share', 0):.1%} | [{weights['value_min']:.1f}, {weights['value_max']:.1f}] "
-                        f"| {v} |")
+            rows.append(f"| {task} | {steps:,} | {record['seed']} | {' | '.join(guide_weight_cells(weights))} | "
+                        f"{start.get('data_share', 0):.1%} → {start.get('weight_share', 0):.1%} | "
+                        f"{goal.get('data_share', 0):.1%} → {goal.get('weight_share', 0):.1%} | "
+                        f"{value_range_cell(weights)} | {value_history_cell(record)} |")
     return rows if len(rows) > 2 else []
+
+
+def guide_weight_cells(weights: dict) -> tuple[str, str]:
+    """Eq. 10's weights over the data at the end of training: Kish's ESS / n, and the share at the clip."""
+    return f"{weights['effective_sample_fraction']:.3f}", f"{weights['clipped_fraction']:.1%}"
+
+
+def value_range_cell(weights: dict) -> str:
+    """V's range over the data at the end of training."""
+    return f"[{weights['value_min']:.1f}, {weights['value_max']:.1f}]"
+
+
+def value_history_cell(record: dict) -> str:
+    """V's batch mean as training logged it: first, halfway and last."""
+    history = record["diagnostics"].get("guide_history", {}).get("value/state_value", [])
+    return " → ".join(f"{value:.1f} (step {step})" for step, value in
+                      (history[0], history[len(history) // 2], history[-1])) if history else "not logged"
 
 
 def _arm_table(heading: str, task: str, arms) -> list[str]:

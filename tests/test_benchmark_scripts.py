@@ -380,3 +380,28 @@ def test_antmaze_premise_names_only_baselines_clear_of_table1():
     verdict = overview._antmaze_verdict(readings)
     assert verdict.endswith("clear of Table 1's mean + std: IQL on antmaze-medium-diverse. TELS has no finished run "
                             "here yet.")
+
+
+def test_antmaze_mechanism_rows_read_each_tels_runs_diagnostics(tmp_path, monkeypatch):
+    """One row per TELS run on the 100k sets, its cells the run's own diagnostics and its later-half score; nothing
+    when no TELS run exists."""
+    from benchmarks import run_grid
+    from study import overview
+
+    monkeypatch.setattr(overview, "ANTMAZE_100K", tmp_path)
+    assert overview._antmaze_mechanism_lines() == []
+    task = run_grid.ANTMAZE_100K_TASKS[1]
+    diagnostics = {"latent_rms": 0.25, "latent_step_rms": 0.5, "guide_step_ratio": 0.8, "guide_step_cosine": 0.6,
+                   "guide_error_ratio": 0.7, "inverse_action_mse": 0.1, "actor_action_mse": 0.3,
+                   "awr_weights": {"effective_sample_fraction": 0.05, "clipped_fraction": 0.02,
+                                   "value_min": -60.0, "value_max": 1.5}}
+    evaluations = [{"step": 2000 * (i + 1), "score": s, "frozen": f}
+                   for i, (s, f) in enumerate(zip([0, 0, 0, 20, 40, 60], [True, False, False, False, False, True]))]
+    path = tmp_path / "tels" / task / "seed2.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"seed": 2, "budget": {"policy_steps": 20_000}, "evaluations": evaluations,
+                                "final_over_last_n_evaluations": 10, "diagnostics": diagnostics}))
+    rows = [line for line in overview._antmaze_mechanism_lines() if line.startswith("| medium-")]
+    assert rows == [f"| {task.removeprefix('antmaze-').removesuffix('-v2-100k')} | TELS (`domain=maze`) | 2 | "
+                    "40.0 | 0.250 | 0.500 | 0.050 | 2.0% | [-60.0, 1.5] | 0.80 | 0.60 | 0.70 | 0.100 / 0.300 | "
+                    "2 of 6 |"]
