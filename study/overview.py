@@ -49,6 +49,13 @@ HELD_OUT_ARMS = (("tels", "TELS, default"), ("tels_paper", "TELS, paper's readin
                  ("td3bc", "TD3+BC"), ("iql", "IQL"))
 #: AntMaze 100k: the policy steps of each arm's runs (the baselines Table 11's 100k; TELS 20k after its stage 1)
 ANTMAZE_STEPS = {"tels": 20_000, "tels_alpha0": 20_000, "bc": 100_000, "iql": 100_000, "td3bc": 100_000}
+#: Fig. 3's deletion test on medium-diverse (``benchmarks.ood_deletion --setup antmaze-medium``)
+OOD_RESULTS = GRID / "ood"
+OOD_SETUP = "antmaze-medium"
+#: Table 9's TS-IDM ablations, run on medium-play: (grid method, the paper's row label, its medium-play value)
+TABLE9_TASK = "antmaze-medium-play-v2-100k"
+TABLE9_ROWS = (("tels_ae", "φ/ψ + h_inv", (0.0, None)), ("tels_dyn", "↑ + h_fwd, h_rvs", (30.4, 9.3)),
+               ("tels_ode", "↑ + ℓ_ode", (48.7, 13.3)), ("tels", "↑ + ℓ_T-sym (TELS)", (62.9, 17.8)))
 #: the maze default, its best variant on umaze (uniform guide weights, α = 0 in Eq. 10), and the baselines
 ANTMAZE_ARMS = (("tels", "TELS (`domain=maze`)"), ("tels_alpha0", "TELS (α = 0)"), ("bc", "BC"), ("iql", "IQL"),
                 ("td3bc", "TD3+BC"))
@@ -505,8 +512,53 @@ def antmaze_section() -> list[str]:
     lines += _antmaze_mechanism_lines()
     per_arm = 3 * len(tasks)
     counts = ", ".join(f"{label} {sum(len(scores[t, m]) for t in tasks)} of {per_arm}" for m, label in ANTMAZE_ARMS)
+    fig3, table9 = _fig3_lines(), _table9_lines()
+    missing = [name for name, part in (("Fig. 3's deletion test", fig3), ("Table 9's ablations", table9)) if not part]
     lines += ["", "**Verdict so far** " + _antmaze_verdict(readings),
               "", f"Runs: {found} of the grid's {per_arm * len(ANTMAZE_ARMS)} ({len(tasks)} sets × "
-              f"{len(ANTMAZE_ARMS)} arms × 3 seeds): {counts}. Not run yet: the rest of the grid, Fig. 3's deletion "
-              "test and Table 9's ablations (commands in [LOG.md](LOG.md)).", ""]
+              f"{len(ANTMAZE_ARMS)} arms × 3 seeds): {counts}. Not run yet: the rest of the grid"
+              + "".join(f", {name}" for name in missing) + " (commands in [LOG.md](LOG.md)).", "",
+              *fig3, *table9]
     return lines
+
+
+def _fig3_lines() -> list[str]:
+    """Fig. 3 on medium-diverse: each method's success rate at each deletion ratio, and the picture of rollouts."""
+    from benchmarks import ood_deletion
+
+    runs = ood_deletion.load_results(OOD_RESULTS).get(OOD_SETUP)
+    if not runs:
+        return []
+    methods = [m for m in ood_deletion.METHODS if any(method == m for method, _ in runs)]
+    rows = []
+    for method in methods:
+        cells = [stats.interval_cell([100 * r["success_rate"] for r in runs.get((method, ratio), [])])
+                 for ratio in ood_deletion.RATIOS]
+        rows.append(f"| {ood_deletion.LABELS[method]} | " + " | ".join(cells) + " |")
+    budgets = sorted({(r["budget"]["policy_steps"], r["budget"]["tsidm_steps"]) for rs in runs.values() for r in rs},
+                     key=lambda b: (b[0], b[1] or 0))
+    return ["**Fig. 3: delete the route's chokepoints** (antmaze-medium-diverse-v2-100k; `python -m "
+            "benchmarks.ood_deletion --grid --setup antmaze-medium --method tels iql bc --ratio 0 0.7 1 --seed 0 1 2 "
+            "--steps 20000 --tsidm-steps 20000 --threads 1`, whose docstring gives the five regions). Success rate "
+            f"in per cent over {ood_deletion.ROLLOUTS} deterministic rollouts from the fixed start to the fixed goal, "
+            "mean over seeds with its 95 % t-interval; budgets: " + "; ".join(
+                f"{p // 1000}k policy steps" + (f" after {t // 1000}k TS-IDM steps" if t else "") for p, t in budgets)
+            + ". Every path: [OOD.md](../benchmarks/results/ood/OOD.md).", "",
+            "| method | " + " | ".join(f"{r:.0%} deleted" for r in ood_deletion.RATIOS) + " |",
+            "|---|" + "---|" * len(ood_deletion.RATIOS), *rows, "",
+            f"![Fig. 3 on our data](../benchmarks/results/ood/plots/{OOD_SETUP}.png)", ""]
+
+
+def _table9_lines() -> list[str]:
+    """Table 9's TS-IDM ablations on medium-play beside the paper's column for it."""
+    cells = [stats.interval_cell(_scores(method, TABLE9_TASK, ANTMAZE_100K, ANTMAZE_STEPS["tels"]))
+             for method, _, _ in TABLE9_ROWS]
+    if all(c == "no runs" for c in cells[:-1]):  # the last row is the grid's TELS: the ablations not run yet
+        return []
+    return [f"**Table 9: TS-IDM's parts** ({TABLE9_TASK}; `python -m benchmarks.run_grid --grid --method tels_ae "
+            f"tels_dyn tels_ode --task {TABLE9_TASK} --seed 0 1 2 --steps 20000 --tsidm-steps 20000 --eval-interval "
+            "2000 --eval-episodes 20 --eval-batched --threads 1 --results-dir benchmarks/results/antmaze100k`: each "
+            "level of TS-IDM with the grid's TELS settings and budget; the last row is the grid's TELS).", "",
+            "| TS-IDM | Table 9 | ours |", "|---|---|---|",
+            *(f"| {label} | {run_grid.paper_cell(paper)} | {cell} |"
+              for (_, label, paper), cell in zip(TABLE9_ROWS, cells)), ""]

@@ -405,3 +405,31 @@ def test_antmaze_mechanism_rows_read_each_tels_runs_diagnostics(tmp_path, monkey
     assert rows == [f"| {task.removeprefix('antmaze-').removesuffix('-v2-100k')} | TELS (`domain=maze`) | 2 | "
                     "40.0 | 0.250 | 0.500 | 0.050 | 2.0% | [-60.0, 1.5] | 0.80 | 0.60 | 0.70 | 0.100 / 0.300 | "
                     "2 of 6 |"]
+
+
+def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
+    """Fig. 3's table is each method's success rate per ratio, in per cent, over seeds; Table 9's rows are the
+    ablations' later-half scores beside the paper's medium-play column; neither shows before its first run."""
+    from benchmarks import run_grid
+    from study import overview
+
+    monkeypatch.setattr(overview, "OOD_RESULTS", tmp_path / "ood")
+    monkeypatch.setattr(overview, "ANTMAZE_100K", tmp_path / "grid")
+    assert overview._fig3_lines() == [] and overview._table9_lines() == []
+    for seed, rate in enumerate([0.25, 0.75]):
+        path = tmp_path / "ood" / "antmaze-medium" / "bc" / f"ratio0.7_seed{seed}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"setup": "antmaze-medium", "method": "bc", "ratio": 0.7, "seed": seed,
+                                    "success_rate": rate, "budget": {"policy_steps": 20000, "tsidm_steps": None}}))
+    row = next(line for line in overview._fig3_lines() if line.startswith("| BC |"))
+    no_deletion, seventy, full = row.strip("| ").split(" | ")[1:]
+    assert no_deletion == "no runs" and full == "no runs"
+    assert seventy.startswith("**50.0** [") and seventy.endswith("(n=2)")
+
+    path = tmp_path / "grid" / "tels_ode" / run_grid.ANTMAZE_100K_TASKS[1] / "seed0.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"seed": 0, "budget": {"policy_steps": 20_000}, "final_over_last_n_evaluations": 10,
+                                "evaluations": [{"step": 10_000, "score": 10.0}, {"step": 20_000, "score": 30.0}]}))
+    rows = [line for line in overview._table9_lines() if line.startswith("| ")][1:]  # below the header
+    assert rows[0] == "| φ/ψ + h_inv | 0.0 | no runs |"
+    assert rows[2] == "| ↑ + ℓ_ode | 48.7 ± 13.3 | **30.0** (n=1) |"
