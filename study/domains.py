@@ -119,7 +119,7 @@ def policy_steps(record: dict) -> int:
     return int(budget["policy_steps"]) if isinstance(budget, dict) else int(record["evaluations"][-1]["step"])
 
 
-def _scored(record: dict) -> list[dict]:
+def scored_evaluations(record: dict) -> list[dict]:
     """The evaluations a run's score averages, as TABLE.md reads them: at the study budget the last 10, at a
     longer budget the later half (TABLE.md's longer-budget sections)."""
     evaluations = record["evaluations"]
@@ -129,11 +129,11 @@ def _scored(record: dict) -> list[dict]:
 
 
 def scores(records: list[dict]) -> list[float]:
-    return [statistics.fmean(e["score"] for e in _scored(r)) for r in records]
+    return [statistics.fmean(e["score"] for e in scored_evaluations(r)) for r in records]
 
 
 def cell(records: list[dict], success: bool = False) -> str:
-    rates = [final_success_rate(_scored(r)) for r in records]
+    rates = [final_success_rate(scored_evaluations(r)) for r in records]
     note = f"success {statistics.mean(rates):.2f}" if success and records and None not in rates else ""
     return stats.interval_cell(scores(records), note)
 

@@ -49,13 +49,21 @@ HELD_OUT_ARMS = (("tels", "TELS, default"), ("tels_paper", "TELS, paper's readin
                  ("td3bc", "TD3+BC"), ("iql", "IQL"))
 #: AntMaze 100k: the policy steps of each arm's runs (the baselines Table 11's 100k; TELS 20k after its stage 1)
 ANTMAZE_STEPS = {"tels": 20_000, "tels_alpha0": 20_000, "bc": 100_000, "iql": 100_000, "td3bc": 100_000}
-#: Fig. 3's deletion test on medium-diverse (``benchmarks.ood_deletion --setup antmaze-medium``)
+#: Fig. 3's deletion test on medium-diverse (``benchmarks.ood_deletion --setup antmaze-medium``), every method at
+#: the grid TELS's 20k policy steps (TELS after its 20k TS-IDM steps)
 OOD_RESULTS = GRID / "ood"
 OOD_SETUP = "antmaze-medium"
-#: Table 9's TS-IDM ablations, run on medium-play: (grid method, the paper's row label, its medium-play value)
+FIG3_STEPS = 20_000
+FIG3_COMMAND = (f"python -m benchmarks.ood_deletion --grid --setup {OOD_SETUP} --method tels iql bc --ratio 0 0.7 1 "
+                f"--seed 0 1 2 --steps {FIG3_STEPS} --tsidm-steps {FIG3_STEPS} --threads 1")
+#: Table 9's TS-IDM ablations, run on medium-play: the grid's methods, from φ/ψ + h_inv to full TS-IDM (TELS)
 TABLE9_TASK = "antmaze-medium-play-v2-100k"
-TABLE9_ROWS = (("tels_ae", "φ/ψ + h_inv", (0.0, None)), ("tels_dyn", "↑ + h_fwd, h_rvs", (30.4, 9.3)),
-               ("tels_ode", "↑ + ℓ_ode", (48.7, 13.3)), ("tels", "↑ + ℓ_T-sym (TELS)", (62.9, 17.8)))
+TABLE9_METHODS = ("tels_ae", "tels_dyn", "tels_ode", "tels")
+#: Table 9's medium-play column for the three ablations (the last row is Table 1's TELS)
+TABLE9_PAPER = {"tels_ae": (0.0, None), "tels_dyn": (30.4, 9.3), "tels_ode": (48.7, 13.3)}
+TABLE9_COMMAND = (f"python -m benchmarks.run_grid --grid --method tels_ae tels_dyn tels_ode --task {TABLE9_TASK} "
+                  "--seed 0 1 2 --steps 20000 --tsidm-steps 20000 --eval-interval 2000 --eval-episodes 20 "
+                  "--eval-batched --threads 1 --results-dir benchmarks/results/antmaze100k --work-dir runs/antmaze100k")
 #: the maze default, its best variant on umaze (uniform guide weights, α = 0 in Eq. 10), and the baselines
 ANTMAZE_ARMS = (("tels", "TELS (`domain=maze`)"), ("tels_alpha0", "TELS (α = 0)"), ("bc", "BC"), ("iql", "IQL"),
                 ("td3bc", "TD3+BC"))
@@ -259,9 +267,10 @@ def _frozen_flags(runs: list[dict]) -> list[bool]:
     return [e["frozen"] for run in runs for e in run["evaluations"] if "frozen" in e]
 
 
-def _frozen_note(runs: list[dict]) -> str:
-    flags = _frozen_flags(runs)
-    return f"frozen {sum(flags)} of {len(flags)}" if flags else ""
+def _frozen_in_scored_half(runs: list[dict]) -> str:
+    """How many of ``runs`` have an evaluation flagged frozen among those their score averages."""
+    flagged = [run for run in runs if any(e.get("frozen") for e in domains.scored_evaluations(run))]
+    return f"{len(flagged)} of {len(runs)} seeds frozen in the later half" if runs else ""
 
 
 def held_out_longer_lines() -> list[str]:
@@ -271,21 +280,27 @@ def held_out_longer_lines() -> list[str]:
     table = [head + "The default and BC, the arms the nine-row verdict compares, with the tuned "
              "sets' longer protocol (`long20k`: 10 episodes every 2k steps, a run's score the mean of the later half "
              "of its evaluations); the default's stage 2 starts from the TS-IDM of its study-budget run of the same "
-             f"seed, in that grid's `--work-dir` (`{HELD_OUT_LONG_COMMAND}`). The default's cell counts its "
-             "evaluations flagged frozen.", "",
+             f"seed, in that grid's `--work-dir` (`{HELD_OUT_LONG_COMMAND}`). The default's cell counts its seeds "
+             "with an evaluation flagged frozen in the later half.", "",
              "| set | " + " | ".join(label for _, label in HELD_OUT_LONG_ARMS) + " |",
              "|---|" + "---|" * len(HELD_OUT_LONG_ARMS)]
-    found = 0
+    found, reused, default_runs = 0, 0, 0
     for task in run_grid.HELD_OUT_TASKS:
         cells = []
         for method, _ in HELD_OUT_LONG_ARMS:
             runs = domains.runs(method, task, HELD_OUT_LONG, HELD_OUT_LONG_STEPS)
             found += len(runs)
-            cells.append(stats.interval_cell(domains.scores(runs), _frozen_note(runs)))
+            if method == "tels":
+                default_runs += len(runs)
+                reused += sum(domains.tsidm_source(r) is not None for r in runs)
+            cells.append(stats.interval_cell(domains.scores(runs),
+                                             _frozen_in_scored_half(runs) if method == "tels" else ""))
         table.append(f"| {task} | " + " | ".join(cells) + " |")
     if not found:
         return [head + f"The default and BC, not run yet: `{HELD_OUT_LONG_COMMAND}`.", ""]
-    return table + ["", f"Runs: {found} of {3 * len(run_grid.HELD_OUT_TASKS) * len(HELD_OUT_LONG_ARMS)}.", ""]
+    return table + ["", f"Runs: {found} of {3 * len(run_grid.HELD_OUT_TASKS) * len(HELD_OUT_LONG_ARMS)}; "
+                    f"{reused} of the default's {default_runs} started from a study run's TS-IDM, the rest trained "
+                    "their own.", ""]
 
 
 def _frozen_lines(default_runs: dict[str, list[dict]]) -> list[str]:
@@ -447,24 +462,26 @@ def _antmaze_readings(scores: dict[tuple[str, str], list[float]]) -> list[Readin
 
 def _antmaze_mechanism_lines() -> list[str]:
     """Per TELS run on the 100k sets, the quantities that say whether each stage did its part (``diagnostics``)."""
-    rows = []
+    rows, transitions = [], set()
     for task in run_grid.ANTMAZE_100K_TASKS:
-        for method in ("tels", "tels_alpha0"):
+        for method, label in ((m, label) for m, label in ANTMAZE_ARMS if m.startswith("tels")):
             for record in domains.runs(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method]):
-                d = record["diagnostics"]
-                weights, flags = d["awr_weights"], _frozen_flags([record])
+                diagnostics = record["diagnostics"]
+                weights, flags = diagnostics["awr_weights"], _frozen_flags([record])
+                transitions.add(diagnostics["diagnostic_transitions"])
                 rows.append(
-                    f"| {task.removeprefix('antmaze-').removesuffix('-v2-100k')} | {dict(ANTMAZE_ARMS)[method]} | "
-                    f"{record['seed']} | {domains.scores([record])[0]:.1f} | {d['latent_rms']:.3f} | "
-                    f"{d['latent_step_rms']:.3f} | "
-                    f"{' | '.join(domains.guide_weight_cells(weights))} | "
-                    f"{domains.value_range_cell(weights)} | {d['guide_step_ratio']:.2f} | "
-                    f"{d['guide_step_cosine']:.2f} | "
-                    f"{d['guide_error_ratio']:.2f} | {d['inverse_action_mse']:.3f} / {d['actor_action_mse']:.3f} | "
-                    f"{sum(flags)} of {len(flags)} |")
+                    f"| {task.removeprefix('antmaze-').removesuffix('-v2-100k')} | {label} | {record['seed']} | "
+                    f"{domains.scores([record])[0]:.1f} | {diagnostics['latent_rms']:.3f} | "
+                    f"{diagnostics['latent_step_rms']:.3f} | {' | '.join(domains.guide_weight_cells(weights))} | "
+                    f"{domains.value_range_cell(weights)} | {diagnostics['guide_step_ratio']:.2f} | "
+                    f"{diagnostics['guide_step_cosine']:.2f} | {diagnostics['guide_error_ratio']:.2f} | "
+                    f"{diagnostics['inverse_action_mse']:.3f} / {diagnostics['actor_action_mse']:.3f} | "
+                    + (f"{sum(flags)} of {len(flags)}" if flags else "not recorded") + " |")
     if not rows:
         return []
-    return ["", "**What each stage did** (per TELS run, over the whole data at the end of training; "
+    counted = " or ".join(f"{n:,}" for n in sorted(transitions))
+    return ["", f"**What each stage did** (per TELS run, over {counted} of the data's transitions at the end of "
+            "training; "
             "`torchrl_tels.diagnostics`). Latent: φ(s)'s RMS spread per dimension over the data, and the RMS length "
             "of the data's latent step z_s' − z_s. Guide weights (Eq. 10): Kish's effective sample "
             "size over n, and the share at the clip. V on the data: its range (with rewards r − 1 and γ = 0.99 "
@@ -513,12 +530,12 @@ def antmaze_section() -> list[str]:
     per_arm = 3 * len(tasks)
     counts = ", ".join(f"{label} {sum(len(scores[t, m]) for t in tasks)} of {per_arm}" for m, label in ANTMAZE_ARMS)
     fig3, table9 = _fig3_lines(), _table9_lines()
-    missing = [name for name, part in (("Fig. 3's deletion test", fig3), ("Table 9's ablations", table9)) if not part]
+    missing = [f"{name} (`{command}`)" for name, part, command in (
+        ("Fig. 3's deletion test", fig3, FIG3_COMMAND), ("Table 9's ablations", table9, TABLE9_COMMAND)) if not part]
     lines += ["", "**Verdict so far** " + _antmaze_verdict(readings),
               "", f"Runs: {found} of the grid's {per_arm * len(ANTMAZE_ARMS)} ({len(tasks)} sets × "
-              f"{len(ANTMAZE_ARMS)} arms × 3 seeds): {counts}. Not run yet: the rest of the grid"
-              + "".join(f", {name}" for name in missing) + " (commands in [LOG.md](LOG.md)).", "",
-              *fig3, *table9]
+              f"{len(ANTMAZE_ARMS)} arms × 3 seeds): {counts}. Not run yet: the rest of the grid (commands in "
+              "[LOG.md](LOG.md))" + "".join(f"; {m}" for m in missing) + ".", "", *fig3, *table9]
     return lines
 
 
@@ -526,7 +543,10 @@ def _fig3_lines() -> list[str]:
     """Fig. 3 on medium-diverse: each method's success rate at each deletion ratio, and the picture of rollouts."""
     from benchmarks import ood_deletion
 
-    runs = ood_deletion.load_results(OOD_RESULTS).get(OOD_SETUP)
+    runs = {key: [r for r in records if r["budget"]["policy_steps"] == FIG3_STEPS
+                  and r["budget"]["tsidm_steps"] in (None, FIG3_STEPS)]
+            for key, records in ood_deletion.load_results(OOD_RESULTS).get(OOD_SETUP, {}).items()}
+    runs = {key: records for key, records in runs.items() if records}
     if not runs:
         return []
     methods = [m for m in ood_deletion.METHODS if any(method == m for method, _ in runs)]
@@ -535,14 +555,11 @@ def _fig3_lines() -> list[str]:
         cells = [stats.interval_cell([100 * r["success_rate"] for r in runs.get((method, ratio), [])])
                  for ratio in ood_deletion.RATIOS]
         rows.append(f"| {ood_deletion.LABELS[method]} | " + " | ".join(cells) + " |")
-    budgets = sorted({(r["budget"]["policy_steps"], r["budget"]["tsidm_steps"]) for rs in runs.values() for r in rs},
-                     key=lambda b: (b[0], b[1] or 0))
-    return ["**Fig. 3: delete the route's chokepoints** (antmaze-medium-diverse-v2-100k; `python -m "
-            "benchmarks.ood_deletion --grid --setup antmaze-medium --method tels iql bc --ratio 0 0.7 1 --seed 0 1 2 "
-            "--steps 20000 --tsidm-steps 20000 --threads 1`, whose docstring gives the five regions). Success rate "
-            f"in per cent over {ood_deletion.ROLLOUTS} deterministic rollouts from the fixed start to the fixed goal, "
-            "mean over seeds with its 95 % t-interval; budgets: " + "; ".join(
-                f"{p // 1000}k policy steps" + (f" after {t // 1000}k TS-IDM steps" if t else "") for p, t in budgets)
+    return ["**Fig. 3: delete the route's chokepoints** (antmaze-medium-diverse-v2-100k; "
+            f"`{FIG3_COMMAND}`; `benchmarks.ood_deletion`'s docstring gives the five regions). Success rate in per "
+            f"cent over {ood_deletion.ROLLOUTS} deterministic rollouts from the fixed start to the fixed goal, mean "
+            f"over seeds with its 95 % t-interval; every method {FIG3_STEPS // 1000}k policy steps, TELS after "
+            f"{FIG3_STEPS // 1000}k TS-IDM steps"
             + ". Every path: [OOD.md](../benchmarks/results/ood/OOD.md).", "",
             "| method | " + " | ".join(f"{r:.0%} deleted" for r in ood_deletion.RATIOS) + " |",
             "|---|" + "---|" * len(ood_deletion.RATIOS), *rows, "",
@@ -552,13 +569,12 @@ def _fig3_lines() -> list[str]:
 def _table9_lines() -> list[str]:
     """Table 9's TS-IDM ablations on medium-play beside the paper's column for it."""
     cells = [stats.interval_cell(_scores(method, TABLE9_TASK, ANTMAZE_100K, ANTMAZE_STEPS["tels"]))
-             for method, _, _ in TABLE9_ROWS]
+             for method in TABLE9_METHODS]
     if all(c == "no runs" for c in cells[:-1]):  # the last row is the grid's TELS: the ablations not run yet
         return []
-    return [f"**Table 9: TS-IDM's parts** ({TABLE9_TASK}; `python -m benchmarks.run_grid --grid --method tels_ae "
-            f"tels_dyn tels_ode --task {TABLE9_TASK} --seed 0 1 2 --steps 20000 --tsidm-steps 20000 --eval-interval "
-            "2000 --eval-episodes 20 --eval-batched --threads 1 --results-dir benchmarks/results/antmaze100k`: each "
-            "level of TS-IDM with the grid's TELS settings and budget; the last row is the grid's TELS).", "",
+    paper = {**TABLE9_PAPER, "tels": _paper(TABLE9_TASK, "tels")}
+    return [f"**Table 9: TS-IDM's parts** ({TABLE9_TASK}; `{TABLE9_COMMAND}`: each level of TS-IDM with the grid's "
+            "TELS settings and budget; the last row is the grid's TELS, full TS-IDM).", "",
             "| TS-IDM | Table 9 | ours |", "|---|---|---|",
-            *(f"| {label} | {run_grid.paper_cell(paper)} | {cell} |"
-              for (_, label, paper), cell in zip(TABLE9_ROWS, cells)), ""]
+            *(f"| {run_grid.LABELS[method]} | {run_grid.paper_cell(paper[method])} | {cell} |"
+              for method, cell in zip(TABLE9_METHODS, cells)), ""]

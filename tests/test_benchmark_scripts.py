@@ -264,23 +264,25 @@ def test_overview_rows_read_the_grid_and_pick_the_best_other_baseline():
 
 def test_longer_held_out_lines_score_the_later_half_at_20k_only(tmp_path, monkeypatch):
     """The five rows' 20k arm: a cell is the mean over seeds of each run's later-half mean, runs at another budget
-    in the same folder are left out, and the default's cell counts its frozen evaluations."""
+    in the same folder are left out, the default's cell counts its seeds frozen in the later half, and the runs line
+    how many reused a TS-IDM."""
     from benchmarks import run_grid
     from study import overview
 
     monkeypatch.setattr(overview, "HELD_OUT_LONG", tmp_path)
     assert "not run yet" in overview.held_out_longer_lines()[0]
 
-    def write(method, task, seed, steps, scores, frozen=None):
+    def write(method, task, seed, steps, scores, frozen=None, overrides=()):
         path = tmp_path / method / task / f"seed{seed}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         evaluations = [{"step": steps * (i + 1) // len(scores), "score": s,
                         **({} if frozen is None else {"frozen": frozen[i]})} for i, s in enumerate(scores)]
         path.write_text(json.dumps({"seed": seed, "budget": {"policy_steps": steps}, "evaluations": evaluations,
-                                    "final_over_last_n_evaluations": len(scores)}))
+                                    "final_over_last_n_evaluations": len(scores), "recipe_overrides": overrides}))
 
     task = run_grid.HELD_OUT_TASKS[-1]
-    write("tels", task, 0, 20_000, [0.0, 0.0, 10.0, 20.0], frozen=[True, True, False, False])
+    write("tels", task, 0, 20_000, [0.0, 0.0, 10.0, 20.0], frozen=[True, True, False, False],
+          overrides=["tsidm.checkpoint=runs/benchmarks_heldout/tels/x/seed0/tsidm.pt"])
     write("tels", task, 1, 20_000, [0.0, 0.0, 30.0, 40.0], frozen=[True, False, False, True])
     write("bc", task, 0, 5_000, [50.0, 50.0])  # the study budget: not this table's
     lines = overview.held_out_longer_lines()
@@ -288,9 +290,9 @@ def test_longer_held_out_lines_score_the_later_half_at_20k_only(tmp_path, monkey
     default_cell, bc_cell = row.split(" | ")[1:3]
     later_halves = [15.0, 35.0]  # (10 + 20) / 2 and (30 + 40) / 2
     assert default_cell.startswith(f"**{sum(later_halves) / 2:.1f}** [")
-    assert "(n=2; frozen 4 of 8)" in default_cell
+    assert "(n=2; 1 of 2 seeds frozen in the later half)" in default_cell  # seed 1 froze at its last evaluation
     assert bc_cell.strip(" |") == "no runs"
-    assert "Runs: 2 of 30." in lines
+    assert "Runs: 2 of 30; 1 of the default's 2 started from a study run's TS-IDM, the rest trained their own." in lines
 
 
 def test_frozen_line_counts_the_defaults_flagged_evaluations(tmp_path, monkeypatch):
@@ -393,6 +395,7 @@ def test_antmaze_mechanism_rows_read_each_tels_runs_diagnostics(tmp_path, monkey
     task = run_grid.ANTMAZE_100K_TASKS[1]
     diagnostics = {"latent_rms": 0.25, "latent_step_rms": 0.5, "guide_step_ratio": 0.8, "guide_step_cosine": 0.6,
                    "guide_error_ratio": 0.7, "inverse_action_mse": 0.1, "actor_action_mse": 0.3,
+                   "diagnostic_transitions": 12345,
                    "awr_weights": {"effective_sample_fraction": 0.05, "clipped_fraction": 0.02,
                                    "value_min": -60.0, "value_max": 1.5}}
     evaluations = [{"step": 2000 * (i + 1), "score": s, "frozen": f}
@@ -401,7 +404,9 @@ def test_antmaze_mechanism_rows_read_each_tels_runs_diagnostics(tmp_path, monkey
     path.parent.mkdir(parents=True)
     path.write_text(json.dumps({"seed": 2, "budget": {"policy_steps": 20_000}, "evaluations": evaluations,
                                 "final_over_last_n_evaluations": 10, "diagnostics": diagnostics}))
-    rows = [line for line in overview._antmaze_mechanism_lines() if line.startswith("| medium-")]
+    lines = overview._antmaze_mechanism_lines()
+    assert "over 12,345 of the data's transitions" in lines[1]
+    rows = [line for line in lines if line.startswith("| medium-")]
     assert rows == [f"| {task.removeprefix('antmaze-').removesuffix('-v2-100k')} | TELS (`domain=maze`) | 2 | "
                     "40.0 | 0.250 | 0.500 | 0.050 | 2.0% | [-60.0, 1.5] | 0.80 | 0.60 | 0.70 | 0.100 / 0.300 | "
                     "2 of 6 |"]
@@ -416,11 +421,11 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
     monkeypatch.setattr(overview, "OOD_RESULTS", tmp_path / "ood")
     monkeypatch.setattr(overview, "ANTMAZE_100K", tmp_path / "grid")
     assert overview._fig3_lines() == [] and overview._table9_lines() == []
-    for seed, rate in enumerate([0.25, 0.75]):
+    for seed, rate, steps in [(0, 0.25, 20000), (1, 0.75, 20000), (2, 1.0, 5000)]:  # the 5k run: another budget
         path = tmp_path / "ood" / "antmaze-medium" / "bc" / f"ratio0.7_seed{seed}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"setup": "antmaze-medium", "method": "bc", "ratio": 0.7, "seed": seed,
-                                    "success_rate": rate, "budget": {"policy_steps": 20000, "tsidm_steps": None}}))
+                                    "success_rate": rate, "budget": {"policy_steps": steps, "tsidm_steps": None}}))
     row = next(line for line in overview._fig3_lines() if line.startswith("| BC |"))
     no_deletion, seventy, full = row.strip("| ").split(" | ")[1:]
     assert no_deletion == "no runs" and full == "no runs"
