@@ -37,6 +37,9 @@ HELD_OUT_LONG_COMMAND = (
     "--tsidm-steps 3000 --eval-interval 2000 --eval-episodes 10 --threads 1 --results-dir "
     "benchmarks/results/heldout_long20k --work-dir runs/heldout_long20k --tsidm-from runs/benchmarks_heldout "
     "--tsidm-from-method tels")
+#: the row where the default freezes, and the arm that asks which of its departures does it (study/results)
+FREEZE_TASK = "halfcheetah-medium-replay-v2-10k"
+FREEZE_ARM = "heldout_guide_alpha0.01"
 #: Table 1's AntMaze medium and large rows at 100k transitions
 ANTMAZE_100K = GRID / "antmaze100k"
 FIGURE = summary.HERE / "overview.png"
@@ -257,9 +260,27 @@ def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]
                  + ", ".join(missing) + ". ")
               + "Commits: " + (", ".join(f"`{c[:7]}`" for c in sorted(commits)) or "none") + ".", ""]
     lines += _frozen_lines(default_runs)
+    lines += _freeze_cause_lines(default_runs.get(FREEZE_TASK, []))
     lines += (verdict or held_out_verdict())[0]
     lines += held_out_longer_lines()
     return lines
+
+
+def _freeze_cause_lines(default_runs: list[dict]) -> list[str]:
+    """The default with Table 11's α on its own TS-IDMs, on the row where it freezes, beside the default."""
+    runs = domains.runs(FREEZE_ARM, FREEZE_TASK, domains.STUDY_RESULTS)
+    head = (f"**Which departure freezes it** (an arm added after these numbers were seen). On {FREEZE_TASK}, the "
+            "default's stage 2 again with Table 11's α = 0.01 in Eq. 9 instead of the default's 1, on each seed's own "
+            "TS-IDM from this grid, everything else unchanged (`python -m study.run_choice --name "
+            f"{FREEZE_ARM} --task {FREEZE_TASK} --seed <k> --budget budget=study eval.episodes=10 --override "
+            "guide.alpha=0.01 tsidm.checkpoint=<the default's tsidm.pt for seed k>`). Re-encoding the proposal, the "
+            "default's third departure, acts only when the actor acts, so α and the TS-IDM's β are the candidates: "
+            "this arm unfreezing points at α, freezing still at β.")
+    if not runs:
+        return [head + " Not run yet.", ""]
+    return [head + f" With α = 0.01: {stats.interval_cell(domains.scores(runs))}, {_seeds_frozen(runs)}; the "
+            f"default: {stats.interval_cell(domains.scores(default_runs))}, {_seeds_frozen(default_runs)} (a seed "
+            "counts as frozen with any of its ten evaluations flagged).", ""]
 
 
 def _frozen_flags(runs: list[dict]) -> list[bool]:
@@ -267,10 +288,11 @@ def _frozen_flags(runs: list[dict]) -> list[bool]:
     return [e["frozen"] for run in runs for e in run["evaluations"] if "frozen" in e]
 
 
-def _frozen_in_scored_half(runs: list[dict]) -> str:
-    """How many of ``runs`` have an evaluation flagged frozen among those their score averages."""
+def _seeds_frozen(runs: list[dict]) -> str:
+    """How many of ``runs`` have an evaluation flagged frozen among those their score averages (at the study budget
+    all ten, at a longer one the later half)."""
     flagged = [run for run in runs if any(e.get("frozen") for e in domains.scored_evaluations(run))]
-    return f"{len(flagged)} of {len(runs)} seeds frozen in the later half" if runs else ""
+    return f"{len(flagged)} of {len(runs)} seeds frozen" if runs else ""
 
 
 def held_out_longer_lines() -> list[str]:
@@ -293,8 +315,8 @@ def held_out_longer_lines() -> list[str]:
             if method == "tels":
                 default_runs += len(runs)
                 reused += sum(domains.tsidm_source(r) is not None for r in runs)
-            cells.append(stats.interval_cell(domains.scores(runs),
-                                             _frozen_in_scored_half(runs) if method == "tels" else ""))
+            frozen = _seeds_frozen(runs) + " in the later half" if runs and method == "tels" else ""
+            cells.append(stats.interval_cell(domains.scores(runs), frozen))
         table.append(f"| {task} | " + " | ".join(cells) + " |")
     if not found:
         return [head + f"The default and BC, not run yet: `{HELD_OUT_LONG_COMMAND}`.", ""]

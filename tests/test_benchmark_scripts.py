@@ -438,3 +438,25 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
     rows = [line for line in overview._table9_lines() if line.startswith("| ")][1:]  # below the header
     assert rows[0] == "| φ/ψ + h_inv | 0.0 | no runs |"
     assert rows[2] == "| ↑ + ℓ_ode | 48.7 ± 13.3 | **30.0** (n=1) |"
+
+
+def test_freeze_cause_line_sets_the_alpha_arm_beside_the_default(tmp_path, monkeypatch):
+    """The α = 0.01 arm's cell and frozen-seed count read its own runs; the default's come from the runs passed in."""
+    from study import domains, overview
+
+    monkeypatch.setattr(domains, "STUDY_RESULTS", tmp_path)
+    assert overview._freeze_cause_lines([])[0].endswith("Not run yet.")
+
+    def run(seed, scores, frozen):
+        return {"seed": seed, "budget": {"policy_steps": 5000}, "final_over_last_n_evaluations": len(scores),
+                "evaluations": [{"step": 500 * (i + 1), "score": s, "frozen": f}
+                                for i, (s, f) in enumerate(zip(scores, frozen))]}
+
+    for seed in (0, 1):
+        path = tmp_path / overview.FREEZE_ARM / overview.FREEZE_TASK / f"seed{seed}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(run(seed, [10.0, 20.0 + 10 * seed], [seed == 1, False])))
+    default = [run(k, [1.0, 2.0], [True, True]) for k in range(3)]
+    line = overview._freeze_cause_lines(default)[0]
+    assert "With α = 0.01: **17.5** [" in line and "(n=2), 1 of 2 seeds frozen" in line  # means 15 and 20
+    assert "the default: **1.5** [1.5, 1.5] (n=3), 3 of 3 seeds frozen" in line
