@@ -440,23 +440,32 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
     assert rows[2] == "| ↑ + ℓ_ode | 48.7 ± 13.3 | **30.0** (n=1) |"
 
 
-def test_freeze_cause_line_sets_the_alpha_arm_beside_the_default(tmp_path, monkeypatch):
-    """The α = 0.01 arm's cell and frozen-seed count read its own runs; the default's come from the runs passed in."""
+def test_freeze_cause_table_crosses_alpha_and_beta(tmp_path, monkeypatch):
+    """The 2 x 2: the default's runs as passed in, each arm's own runs from the study's results, the paper's reading
+    from the five-row grid; each cell with its mean and its seeds with any evaluation frozen."""
     from study import domains, overview
 
-    monkeypatch.setattr(domains, "STUDY_RESULTS", tmp_path)
-    assert overview._freeze_cause_lines([])[0].endswith("Not run yet.")
+    monkeypatch.setattr(domains, "STUDY_RESULTS", tmp_path / "study")
+    monkeypatch.setattr(overview, "HELD_OUT", tmp_path / "grid")
 
     def run(seed, scores, frozen):
         return {"seed": seed, "budget": {"policy_steps": 5000}, "final_over_last_n_evaluations": len(scores),
                 "evaluations": [{"step": 500 * (i + 1), "score": s, "frozen": f}
                                 for i, (s, f) in enumerate(zip(scores, frozen))]}
 
-    for seed in (0, 1):
-        path = tmp_path / overview.FREEZE_ARM / overview.FREEZE_TASK / f"seed{seed}.json"
+    def write(folder, seed, record):
+        path = folder / overview.FREEZE_TASK / f"seed{seed}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(run(seed, [10.0, 20.0 + 10 * seed], [seed == 1, False])))
+        path.write_text(json.dumps(record))
+
+    for seed in (0, 1):
+        write(tmp_path / "study" / overview.FREEZE_ALPHA_ARM, seed,
+              run(seed, [10.0, 20.0 + 10 * seed], [seed == 1, False]))
+    write(tmp_path / "grid" / "tels_paper", 0, run(0, [4.0, 8.0], [False, False]))
     default = [run(k, [1.0, 2.0], [True, True]) for k in range(3)]
-    line = overview._freeze_cause_lines(default)[0]
-    assert "With α = 0.01: **17.5** [" in line and "(n=2), 1 of 2 seeds frozen" in line  # means 15 and 20
-    assert "the default: **1.5** [1.5, 1.5] (n=3), 3 of 3 seeds frozen" in line
+    rows = {line.split(" | ")[0]: line for line in overview._freeze_cause_lines(default) if line.startswith("| ")}
+    default_row, alpha_row = rows["| 1 (the default's)"], rows["| 0.01 (Table 11)"]
+    assert "the default: **1.5** [1.5, 1.5] (n=3; 3 of 3 seeds frozen)" in default_row
+    assert default_row.endswith("| no runs |")  # the β arm has not run
+    assert "| **17.5** [" in alpha_row and "(n=2; 1 of 2 seeds frozen)" in alpha_row  # means 15 and 20
+    assert alpha_row.endswith("| the paper's reading: **6.0** (n=1; 0 of 1 seeds frozen) |")
