@@ -442,7 +442,7 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
 
 def test_freeze_cause_table_crosses_alpha_and_beta(tmp_path, monkeypatch):
     """The 2 x 2: the default's runs as passed in, each arm's own runs from the study's results, the paper's reading
-    from the five-row grid; each cell with its mean and its seeds with any evaluation frozen."""
+    from the five-row grid; each cell with its mean and its evaluations flagged frozen."""
     from study import domains, overview
 
     monkeypatch.setattr(domains, "STUDY_RESULTS", tmp_path / "study")
@@ -465,7 +465,7 @@ def test_freeze_cause_table_crosses_alpha_and_beta(tmp_path, monkeypatch):
     default = [run(k, [1.0, 2.0], [True, True]) for k in range(3)]
     rows = {line.split(" | ")[0]: line for line in overview._freeze_cause_lines(default) if line.startswith("| ")}
     default_row, alpha_row = rows["| 1 (the default's)"], rows["| 0.01 (Table 11)"]
-    assert "the default: **1.5** [1.5, 1.5] (n=3; 3 of 3 seeds frozen)" in default_row
+    assert "the default: **1.5** [1.5, 1.5] (n=3; 6 of 6 evaluations frozen)" in default_row
     assert default_row.endswith("| no runs |")  # the β arm has not run
-    assert "| **17.5** [" in alpha_row and "(n=2; 1 of 2 seeds frozen)" in alpha_row  # means 15 and 20
-    assert alpha_row.endswith("| the paper's reading: **6.0** (n=1; 0 of 1 seeds frozen) |")
+    assert "| **17.5** [" in alpha_row and "(n=2; 1 of 4 evaluations frozen)" in alpha_row  # means 15 and 20
+    assert alpha_row.endswith("| the paper's reading: **6.0** (n=1; 0 of 2 evaluations frozen) |")
