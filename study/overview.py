@@ -234,11 +234,11 @@ def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]
              "iql td3bc tels tels_paper --task <the five> --seed 0 1 2 --steps 5000 --tsidm-steps 3000 "
              "--eval-interval 500 --eval-episodes 10 --threads 1 --results-dir benchmarks/results/heldout --work-dir "
              "runs/benchmarks_heldout`); each "
-             "JSON records the commit it ran at (`code`). Arms added after seeing these numbers would be labelled "
-             "as such below the pre-registered ones; there are none.", "", *_arms_header(HELD_OUT_ARMS)]
+             "JSON records the commit it ran at (`code`). Arms added after seeing these numbers are labelled as such "
+             "below the pre-registered ones.", "", *_arms_header(HELD_OUT_ARMS)]
     commits = set()
     counts = {m: 0 for m, _ in HELD_OUT_ARMS}
-    default_runs = {}
+    read = {}  # (method, task): runs, for the paragraphs below
     for task in run_grid.HELD_OUT_TASKS:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, "tels" if m.startswith("tels") else m)) else "—"
                  for m, _ in HELD_OUT_ARMS]
@@ -246,9 +246,7 @@ def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]
         lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
         cells = []
         for method, _ in HELD_OUT_ARMS:
-            runs = domains.runs(method, task, HELD_OUT)
-            if method == "tels":
-                default_runs[task] = runs
+            runs = read[method, task] = domains.runs(method, task, HELD_OUT)
             counts[method] += len(runs)
             commits.update((r.get("code") or {}).get("commit") or "unrecorded" for r in runs)
             cells.append(stats.interval_cell(domains.scores(runs)))
@@ -260,14 +258,14 @@ def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]
                  "Missing (still to run, with the command above, which skips what exists): "
                  + ", ".join(missing) + ". ")
               + "Commits: " + (", ".join(f"`{c[:7]}`" for c in sorted(commits)) or "none") + ".", ""]
-    lines += _frozen_lines(default_runs)
-    lines += _freeze_cause_lines(default_runs.get(FREEZE_TASK, []))
+    lines += _frozen_lines({task: read["tels", task] for task in run_grid.HELD_OUT_TASKS})
+    lines += _freeze_cause_lines(read["tels", FREEZE_TASK], read["tels_paper", FREEZE_TASK])
     lines += (verdict or held_out_verdict())[0]
     lines += held_out_longer_lines()
     return lines
 
 
-def _freeze_cause_lines(default_runs: list[dict]) -> list[str]:
+def _freeze_cause_lines(default_runs: list[dict], paper_runs: list[dict]) -> list[str]:
     """On the row where the default freezes, its two trained departures crossed: Eq. 9's α (Table 11's 0.01, the
     default's 1) against the TS-IDM's β (App. B.5's 1, the default's 0.01), each cell's scores and frozen seeds."""
     def cell(runs: list[dict]) -> str:
@@ -276,7 +274,6 @@ def _freeze_cause_lines(default_runs: list[dict]) -> list[str]:
         return stats.interval_cell(domains.scores(runs), frozen)
 
     arm = lambda name: domains.runs(name, FREEZE_TASK, domains.STUDY_RESULTS)
-    paper = domains.runs("tels_paper", FREEZE_TASK, HELD_OUT)
     command = (f"python -m study.run_choice --name <arm> --task {FREEZE_TASK} --seed <k> --budget budget=study "
                "eval.episodes=10 --override")
     return [f"**Which departure freezes it** (two arms added after these numbers were seen). The default departs "
@@ -290,7 +287,7 @@ def _freeze_cause_lines(default_runs: list[dict]) -> list[str]:
             "frozen, ten per seed.", "",
             "| Eq. 9's α | TS-IDM's β = 0.01 (the default's) | β = 1 (App. B.5) |", "|---|---|---|",
             f"| 1 (the default's) | the default: {cell(default_runs)} | {cell(arm(FREEZE_BETA_ARM))} |",
-            f"| 0.01 (Table 11) | {cell(arm(FREEZE_ALPHA_ARM))} | the paper's reading: {cell(paper)} |", ""]
+            f"| 0.01 (Table 11) | {cell(arm(FREEZE_ALPHA_ARM))} | the paper's reading: {cell(paper_runs)} |", ""]
 
 
 def _frozen_flags(runs: list[dict]) -> list[bool]:
