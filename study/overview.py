@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from benchmarks import run_grid
+from benchmarks.harness import repo_relative
 from study import domains, latent_scale, summary
 from torchrl_tels import stats
 
@@ -33,10 +34,10 @@ HELD_OUT_LONG = GRID / "heldout_long20k"
 HELD_OUT_LONG_STEPS = 20_000
 HELD_OUT_LONG_ARMS = (("tels", "TELS, default"), ("bc", "BC"))
 HELD_OUT_LONG_COMMAND = (
-    "python -m benchmarks.run_grid --grid --method tels bc --task <the five> --seed 0 1 2 --steps 20000 "
-    "--tsidm-steps 3000 --eval-interval 2000 --eval-episodes 10 --threads 1 --results-dir "
-    "benchmarks/results/heldout_long20k --work-dir runs/heldout_long20k --tsidm-from runs/benchmarks_heldout "
-    "--tsidm-from-method tels")
+    f"python -m benchmarks.run_grid --grid --method {' '.join(m for m, _ in HELD_OUT_LONG_ARMS)} --task <the five> "
+    f"--seed 0 1 2 --steps {HELD_OUT_LONG_STEPS} --tsidm-steps 3000 --eval-interval 2000 --eval-episodes 10 "
+    f"--threads 1 --results-dir {repo_relative(HELD_OUT_LONG)} --work-dir runs/{HELD_OUT_LONG.name} "
+    "--tsidm-from runs/benchmarks_heldout --tsidm-from-method tels")
 #: the row where the default freezes, and the arms that ask which of its departures does it (study/results)
 FREEZE_TASK = "halfcheetah-medium-replay-v2-10k"
 FREEZE_ALPHA_ARM = "heldout_guide_alpha0.01"
@@ -65,9 +66,10 @@ TABLE9_TASK = "antmaze-medium-play-v2-100k"
 TABLE9_METHODS = ("tels_ae", "tels_dyn", "tels_ode", "tels")
 #: Table 9's medium-play column for the three ablations (the last row is Table 1's TELS)
 TABLE9_PAPER = {"tels_ae": (0.0, None), "tels_dyn": (30.4, 9.3), "tels_ode": (48.7, 13.3)}
-TABLE9_COMMAND = (f"python -m benchmarks.run_grid --grid --method tels_ae tels_dyn tels_ode --task {TABLE9_TASK} "
-                  "--seed 0 1 2 --steps 20000 --tsidm-steps 20000 --eval-interval 2000 --eval-episodes 20 "
-                  "--eval-batched --threads 1 --results-dir benchmarks/results/antmaze100k --work-dir runs/antmaze100k")
+TABLE9_COMMAND = (f"python -m benchmarks.run_grid --grid --method {' '.join(TABLE9_METHODS[:-1])} --task {TABLE9_TASK} "
+                  f"--seed 0 1 2 --steps {ANTMAZE_STEPS['tels']} --tsidm-steps {ANTMAZE_STEPS['tels']} "
+                  "--eval-interval 2000 --eval-episodes 20 --eval-batched --threads 1 "
+                  f"--results-dir {repo_relative(ANTMAZE_100K)} --work-dir runs/{ANTMAZE_100K.name}")
 #: the maze default, its best variant on umaze (uniform guide weights, α = 0 in Eq. 10), and the baselines
 ANTMAZE_ARMS = (("tels", "TELS (`domain=maze`)"), ("tels_alpha0", "TELS (α = 0)"), ("bc", "BC"), ("iql", "IQL"),
                 ("td3bc", "TD3+BC"))
@@ -269,9 +271,8 @@ def _freeze_cause_lines(default_runs: list[dict], paper_runs: list[dict]) -> lis
     """On the row where the default freezes, its two trained departures crossed: Eq. 9's α (Table 11's 0.01, the
     default's 1) against the TS-IDM's β (App. B.5's 1, the default's 0.01), each cell's scores and frozen seeds."""
     def cell(runs: list[dict]) -> str:
-        flags = _frozen_flags(runs)
-        frozen = f"{sum(flags)} of {len(flags)} evaluations frozen" if flags else ""
-        return stats.interval_cell(domains.scores(runs), frozen)
+        frozen = _evaluations_frozen(runs)
+        return stats.interval_cell(domains.scores(runs), f"{frozen} evaluations frozen" if frozen else "")
 
     arm = lambda name: domains.runs(name, FREEZE_TASK, domains.STUDY_RESULTS)
     command = (f"python -m study.run_choice --name <arm> --task {FREEZE_TASK} --seed <k> --budget budget=study "
@@ -290,9 +291,11 @@ def _freeze_cause_lines(default_runs: list[dict], paper_runs: list[dict]) -> lis
             f"| 0.01 (Table 11) | {cell(arm(FREEZE_ALPHA_ARM))} | the paper's reading: {cell(paper_runs)} |", ""]
 
 
-def _frozen_flags(runs: list[dict]) -> list[bool]:
-    """Every evaluation's ``frozen`` flag (``torchrl_tels.diagnostics.is_frozen``) over ``runs``, where recorded."""
-    return [e["frozen"] for run in runs for e in run["evaluations"] if "frozen" in e]
+def _evaluations_frozen(runs: list[dict]) -> str:
+    """"k of n": of the evaluations of ``runs`` that recorded the ``frozen`` flag
+    (``torchrl_tels.diagnostics.is_frozen``), how many it flags; "" where none recorded it."""
+    flags = [e["frozen"] for run in runs for e in run["evaluations"] if "frozen" in e]
+    return f"{sum(flags)} of {len(flags)}" if flags else ""
 
 
 def _seeds_frozen(runs: list[dict]) -> str:
@@ -335,19 +338,16 @@ def held_out_longer_lines() -> list[str]:
 def _frozen_lines(default_runs: dict[str, list[dict]]) -> list[str]:
     """How many of the default's evaluations froze, per row (``default_runs``: the default's runs by set), beside how
     much of each row's data stands still."""
-    frozen = {}
-    for task, runs in default_runs.items():
-        if flags := _frozen_flags(runs):
-            frozen[task] = (sum(flags), len(flags))
+    frozen = {task: count for task, runs in default_runs.items() if (count := _evaluations_frozen(runs))}
     if not frozen:
         return []
     shares = _still_shares()
     stillest = max(shares, key=shares.get)
     short = lambda task: task.removesuffix("-v2-10k")
-    counts = "; ".join(f"{short(t)} {k} of {n}" for t, (k, n) in frozen.items())
+    counts = "; ".join(f"{short(t)} {count}" for t, count in frozen.items())
     still = "; ".join(f"{short(t)} {100 * share:.1f} %" for t, share in shares.items())
-    reading = (f" The set with the most still data, {short(stillest)}, has {frozen[stillest][0]} of "
-               f"{frozen[stillest][1]} evaluations frozen." if stillest in frozen else "")
+    reading = (f" The set with the most still data, {short(stillest)}, has {frozen[stillest]} evaluations frozen."
+               if stillest in frozen else "")
     return ["**Where the default freezes.** An evaluation is flagged frozen when the guide's proposed latent "
             "steps and the actions' spread both stay below a quarter of the data's (`torchrl_tels.diagnostics."
             "is_frozen`): the actions barely vary, the guide → h_inv chain sits at a fixed point. The default's "
@@ -479,7 +479,7 @@ def _antmaze_verdict(readings: list[Reading]) -> str:
             + (" TELS has no finished run here yet." if not any(r.method == "tels" for r in readings) else ""))
 
 
-def _antmaze_scores() -> dict[tuple[str, str], list[float]]:
+def antmaze_scores() -> dict[tuple[str, str], list[float]]:
     """{(task, method): scores} of the AntMaze 100k grid, every cell, empty where nothing ran."""
     return {(task, method): _scores(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method])
             for task in run_grid.ANTMAZE_100K_TASKS for method, _ in ANTMAZE_ARMS}
@@ -496,7 +496,7 @@ def _antmaze_mechanism_lines() -> list[str]:
         for method, label in ((m, label) for m, label in ANTMAZE_ARMS if m.startswith("tels")):
             for record in domains.runs(method, task, ANTMAZE_100K, ANTMAZE_STEPS[method]):
                 diagnostics = record["diagnostics"]
-                weights, flags = diagnostics["awr_weights"], _frozen_flags([record])
+                weights = diagnostics["awr_weights"]
                 transitions.add(diagnostics["diagnostic_transitions"])
                 rows.append(
                     f"| {task.removeprefix('antmaze-').removesuffix('-v2-100k')} | {label} | {record['seed']} | "
@@ -505,7 +505,7 @@ def _antmaze_mechanism_lines() -> list[str]:
                     f"{domains.value_range_cell(weights)} | {diagnostics['guide_step_ratio']:.2f} | "
                     f"{diagnostics['guide_step_cosine']:.2f} | {diagnostics['guide_error_ratio']:.2f} | "
                     f"{diagnostics['inverse_action_mse']:.3f} / {diagnostics['actor_action_mse']:.3f} | "
-                    + (f"{sum(flags)} of {len(flags)}" if flags else "not recorded") + " |")
+                    + (_evaluations_frozen([record]) or "not recorded") + " |")
     if not rows:
         return []
     counted = " or ".join(f"{n:,}" for n in sorted(transitions))
@@ -524,14 +524,17 @@ def _antmaze_mechanism_lines() -> list[str]:
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|", *rows]
 
 
-def antmaze_verdict_line() -> list[str]:
-    """The AntMaze medium/large verdict for the report's opening verdict."""
-    return ["**AntMaze medium and large at 100k**, so far " + _antmaze_verdict(_antmaze_readings(_antmaze_scores()))
+def antmaze_verdict_line(scores: dict[tuple[str, str], list[float]] | None = None) -> list[str]:
+    """The AntMaze medium/large verdict for the report's opening verdict (``scores``: :func:`antmaze_scores`'s
+    answer where the caller already has it)."""
+    scores = antmaze_scores() if scores is None else scores
+    return ["**AntMaze medium and large at 100k**, so far " + _antmaze_verdict(_antmaze_readings(scores))
             + " Details: [AntMaze medium and large at 100k](#antmaze-medium-and-large-at-100k).", ""]
 
 
-def antmaze_section() -> list[str]:
-    """Table 1's AntMaze medium and large rows: every arm run so far beside the paper, and what is missing."""
+def antmaze_section(scores: dict[tuple[str, str], list[float]] | None = None) -> list[str]:
+    """Table 1's AntMaze medium and large rows: every arm run so far beside the paper, and what is missing
+    (``scores``: :func:`antmaze_scores`'s answer where the caller already has it)."""
     lines = ["## AntMaze medium and large at 100k", "",
              "Data: the four sets of `../shared/datasets/antmaze/`, 100,100 transitions each (100 whole episodes "
              "of 1001), regenerated with D4RL's goal-reaching policy, ant, maze maps, waypoint controller and noise "
@@ -547,7 +550,7 @@ def antmaze_section() -> list[str]:
              "Baselines: 100k policy steps with the maze settings settled on umaze (IQL: the authors' actor and "
              "AntMaze values; rewards r − 1).", "",
              *_arms_header(ANTMAZE_ARMS)]
-    scores, tasks = _antmaze_scores(), run_grid.ANTMAZE_100K_TASKS
+    scores, tasks = antmaze_scores() if scores is None else scores, run_grid.ANTMAZE_100K_TASKS
     for task in tasks:
         paper = [run_grid.paper_cell(v) if (v := _paper(task, m)) else "—" for m, _ in ANTMAZE_ARMS]
         lines.append(f"| {task} | Table 1 | " + " | ".join(paper) + " |")
@@ -558,7 +561,7 @@ def antmaze_section() -> list[str]:
     lines += _antmaze_mechanism_lines()
     per_arm = 3 * len(tasks)
     counts = ", ".join(f"{label} {sum(len(scores[t, m]) for t in tasks)} of {per_arm}" for m, label in ANTMAZE_ARMS)
-    fig3, table9 = _fig3_lines(), _table9_lines()
+    fig3, table9 = _fig3_lines(), _table9_lines(scores[TABLE9_TASK, "tels"])
     missing = [f"{name} (`{command}`)" for name, part, command in (
         ("Fig. 3's deletion test", fig3, FIG3_COMMAND), ("Table 9's ablations", table9, TABLE9_COMMAND)) if not part]
     lines += ["", "**Verdict so far** " + _antmaze_verdict(readings),
@@ -595,10 +598,11 @@ def _fig3_lines() -> list[str]:
             f"![Fig. 3 on our data](../benchmarks/results/ood/plots/{OOD_SETUP}.png)", ""]
 
 
-def _table9_lines() -> list[str]:
-    """Table 9's TS-IDM ablations on medium-play beside the paper's column for it."""
+def _table9_lines(tels_scores: list[float]) -> list[str]:
+    """Table 9's TS-IDM ablations on medium-play beside the paper's column for it (``tels_scores``: the grid's TELS
+    there, the last row)."""
     cells = [stats.interval_cell(_scores(method, TABLE9_TASK, ANTMAZE_100K, ANTMAZE_STEPS["tels"]))
-             for method in TABLE9_METHODS]
+             for method in TABLE9_METHODS[:-1]] + [stats.interval_cell(tels_scores)]
     if all(c == "no runs" for c in cells[:-1]):  # the last row is the grid's TELS: the ablations not run yet
         return []
     paper = {**TABLE9_PAPER, "tels": _paper(TABLE9_TASK, "tels")}

@@ -420,7 +420,7 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
 
     monkeypatch.setattr(overview, "OOD_RESULTS", tmp_path / "ood")
     monkeypatch.setattr(overview, "ANTMAZE_100K", tmp_path / "grid")
-    assert overview._fig3_lines() == [] and overview._table9_lines() == []
+    assert overview._fig3_lines() == [] and overview._table9_lines([12.0]) == []  # the grid's TELS alone: no table
     for seed, rate, steps in [(0, 0.25, 20000), (1, 0.75, 20000), (2, 1.0, 5000)]:  # the 5k run: another budget
         path = tmp_path / "ood" / "antmaze-medium" / "bc" / f"ratio0.7_seed{seed}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -435,9 +435,10 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
     path.parent.mkdir(parents=True)
     path.write_text(json.dumps({"seed": 0, "budget": {"policy_steps": 20_000}, "final_over_last_n_evaluations": 10,
                                 "evaluations": [{"step": 10_000, "score": 10.0}, {"step": 20_000, "score": 30.0}]}))
-    rows = [line for line in overview._table9_lines() if line.startswith("| ")][1:]  # below the header
+    rows = [line for line in overview._table9_lines([12.0]) if line.startswith("| ")][1:]  # below the header
     assert rows[0] == "| φ/ψ + h_inv | 0.0 | no runs |"
     assert rows[2] == "| ↑ + ℓ_ode | 48.7 ± 13.3 | **30.0** (n=1) |"
+    assert rows[3] == f"| TELS | {run_grid.paper_cell(overview._paper(overview.TABLE9_TASK, 'tels'))} | **12.0** (n=1) |"
 
 
 def test_freeze_cause_table_crosses_alpha_and_beta(tmp_path, monkeypatch):
