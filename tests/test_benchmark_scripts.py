@@ -441,6 +441,35 @@ def test_fig3_and_table9_lines_read_their_runs(tmp_path, monkeypatch):
     assert rows[3] == f"| TELS | {run_grid.paper_cell(overview._paper(overview.TABLE9_TASK, 'tels'))} | **12.0** (n=1) |"
 
 
+def test_beta1_decision_applies_the_rule_stated_before_the_arm_ran():
+    """β = 0.01 stays only with the higher mean on at least 7 of the 9 rows and the higher IQM (a trimmed mean of the
+    27 scores, computed here by scipy); one row short of 7 returns the default to β = 1; a row short of three seeds
+    decides nothing."""
+    from scipy.stats import trim_mean
+    from study import overview
+
+    def runs(values):
+        return [{"seed": k, "budget": {"policy_steps": 5000}, "final_over_last_n_evaluations": 1,
+                 "evaluations": [{"step": 5000, "score": v}]} for k, v in enumerate(values)]
+
+    def rows(default_ahead: int):
+        # row i: the default scores 10 + i (+ 1 where it is ahead, − 1 where behind), β = 1 scores 10 + i
+        return {f"row{i}": (runs([10 + i + (1 if i < default_ahead else -1)] * 3), runs([10.0 + i] * 3), [])
+                for i in range(9)}
+
+    seven = overview._beta1_decision(rows(7))
+    default = [10 + i + (1 if i < 7 else -1) for i in range(9) for _ in range(3)]
+    assert "higher mean on 7 of 9 rows (row0, row1, row2, row3, row4, row5, row6)" in seven
+    assert f"nine-row IQM {trim_mean(default, 0.25):.1f} [" in seven
+    assert f"against {trim_mean([10 + i for i in range(9) for _ in range(3)], 0.25):.1f} [" in seven
+    assert seven.endswith("**β = 0.01 stays the default.**")
+    six = overview._beta1_decision(rows(6))
+    assert "higher mean on 6 of 9 rows" in six and six.endswith("returns to the paper's β = 1.**")
+    short = rows(9)
+    short["row4"] = (short["row4"][0], short["row4"][1][:2], [])
+    assert overview._beta1_decision(short).endswith("Not decided yet: 1 of 9 rows lack three seeds of both (row4).")
+
+
 def test_freeze_cause_table_crosses_alpha_and_beta(tmp_path, monkeypatch):
     """The 2 x 2: the default's and the paper's reading's runs as passed in, each arm's own runs from the study's
     results; each cell with its mean and its evaluations flagged frozen."""
