@@ -19,7 +19,8 @@ import time
 
 from omegaconf import OmegaConf
 
-from benchmarks.harness import command_line, machine_description, REPO, run_recipe, skip_existing, write_result
+from benchmarks.harness import (code_version, command_line, machine_description, REPO, run_recipe, skip_existing,
+                                write_result)
 from torchrl_tels.run_folder import RunFolder
 
 RESULTS = REPO / "study" / "results"
@@ -54,7 +55,8 @@ def main():
     config = OmegaConf.load(folder.config_path)
     results.update(alpha=float(config.guide.alpha), reencode_proposal=bool(config.guide.reencode_proposal))
     results.update(variant=args.name, overrides=args.override, budget=args.budget, command=command_line(cmd),
-                   date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, machine=machine_description())
+                   date=time.strftime("%Y-%m-%d"), elapsed_s=time.time() - start, machine=machine_description(),
+                   code=code_version())
     write_result(out, results, args.force)
     print(f"{args.name} {args.task} seed {args.seed}: {results['final_normalized_score_mean']:.1f}")
 
