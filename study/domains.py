@@ -613,8 +613,9 @@ def _longer_rows() -> list[str]:
 def section() -> list[str]:
     lines = ["## AntMaze and Adroit, beside Tables 1 and 6", "",
              "The same protocol as the locomotion rows: every method 5k policy steps (TELS after 3k TS-IDM steps), "
-             "the score the mean of the last 10 evaluations, each cell the mean over seeds with its 95 % t-interval "
-             "and n; the paper's value after `·`. AntMaze evaluates 50 episodes every 2,500 steps in the D4RL "
+             "the score the mean of the last 10 evaluations (AntMaze: of its two), each cell the mean over seeds with "
+             "its 95 % t-interval and n; the paper's value after `·`. AntMaze evaluates 50 episodes every 2,500 steps "
+             "in the D4RL "
              "umaze env (`torchrl_tels.envs.antmaze`); Adroit 10 episodes every 500 steps in gymnasium-robotics' "
              "envs with D4RL's reward and episode length (`torchrl_tels.envs.adroit`), with D4RL's success rate "
              "after the score. TELS runs `domain=maze` (Table 11's AntMaze values, Eq. 10) and `domain=adroit` "

@@ -368,7 +368,7 @@ def external(d: Data) -> list[str]:
         summary.REPO / strength["ours"]["results"] / strength["method"] / strength["task"], lambda r: True).values()))))
     above = [t for t in TASKS if statistics.mean(d.study_scores(t, "bc")) > run_grid.PAPER_TABLE1[t]["bc"][0]]
     return [
-        "## Two facts from outside the project", "",
+        "## Two facts about the baselines", "",
         f"**TSRL from its public code.** Table 1 lists TSRL at {run_grid.PAPER_TABLE1[tsrl['task']]['tsrl'][0]:.1f} "
         f"on {tsrl['task']}. Run from [its code]({tsrl['code']}), changed {tsrl['changes_to_the_code']}, it scored "
         f"{tsrl['score']:.1f} ({tsrl['score_reading']}), against our BC's {statistics.mean(_final(bc_runs)):.1f} "
