@@ -672,14 +672,27 @@ def aggregate_section(found: dict, folder: Path, longer: dict[Path, dict] | None
     """IQM and mean over tasks × seeds with stratified-bootstrap 95 % intervals (``torchrl_tels.stats``),
     as a table and a PNG with the performance profiles; a method run at a longer budget on all four sets
     (``longer``) gets a row of its own."""
-    matrices = {LABELS[m]: score_matrix(found, m) for m in TABLE_COLUMNS}
+    def runs_of(grid: dict, method: str) -> list[dict]:
+        return [r for t in AGGREGATE_TASKS for r in grid.get(t, {}).get(method, [])]
+
+    grids = [found, *(longer or {}).values()]
+    # a TELS method whose grids trained their TS-IDMs at different β: each row says its β
+    beta_differs = {m for m in TABLE_COLUMNS if m in TELS_METHODS
+                    and _differing_hyperparameters([r for g in grids for r in runs_of(g, m)], m, "")}
+
+    def beta_of(runs: list[dict]) -> str:
+        return ", β = " + " / ".join(f"{b:g}" for b in sorted({r["beta"] for r in runs if "beta" in r}))
+
+    matrices = {LABELS[m] + (beta_of(runs_of(found, m)) if m in beta_differs else ""): score_matrix(found, m)
+                for m in TABLE_COLUMNS}
     for longer_dir, longer_found in (longer or {}).items():
         for method in TABLE_COLUMNS:
-            steps = {r["budget"]["policy_steps"]
-                     for t in AGGREGATE_TASKS for r in longer_found.get(t, {}).get(method, [])}
+            steps = {r["budget"]["policy_steps"] for r in runs_of(longer_found, method)}
             if not steps:
                 continue
             label = f"{LABELS[method]} at " + " / ".join(_steps_label(n) for n in sorted(steps)) + " steps"
+            if method in beta_differs:
+                label += beta_of(runs_of(longer_found, method))
             if label in matrices:  # two folders at one budget: say which is which
                 label += f" ({repo_relative(longer_dir)})"
             matrices[label] = score_matrix(longer_found, method)
@@ -954,8 +967,11 @@ def longest_budget_section(found: dict, longer: dict[Path, dict], tasks: list[st
 def _differing_hyperparameters(runs: list[dict], method: str, task: str) -> list[str]:
     """The hyperparameter names whose values are not the same in every run, a name a run does not record
     read as the baselines' default for the task, so a row never compares two settings unawares."""
-    defaults = _baseline_defaults(method, task)
-    recorded = [{**defaults, **r["hyperparameters"]} for r in runs if r.get("hyperparameters")]
+    if method in TELS_METHODS:  # TELS records the β its TS-IDM trained at, the setting its grids have changed
+        recorded = [{"tsidm.beta": r["beta"]} for r in runs if "beta" in r]
+    else:
+        defaults = _baseline_defaults(method, task)
+        recorded = [{**defaults, **r["hyperparameters"]} for r in runs if r.get("hyperparameters")]
     return sorted({key for hp in recorded for key in hp if key != "source"
                    and any(other.get(key) != hp[key] for other in recorded)})
 

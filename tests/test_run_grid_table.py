@@ -93,6 +93,9 @@ def test_longer_budget_rows_give_both_scores_the_slope_and_the_verdict(grids):
     assert run_grid._differing_hyperparameters([older, changed], "iql", task) == ["reward_scale"]
     maze_run = {"hyperparameters": {"reward_bias": -1.0}}
     assert run_grid._differing_hyperparameters([older, maze_run], "iql", "antmaze-umaze-v0-10k") == []
+    # TELS: the β its TS-IDM trained at, the one setting its grids have changed
+    assert run_grid._differing_hyperparameters([{"beta": 1.0}, {"beta": 1.0}], "tels", task) == []
+    assert run_grid._differing_hyperparameters([{"beta": 1.0}, {"beta": 0.01}], "tels", task) == ["tsidm.beta"]
     assert bc[8].endswith("(../long20k/TABLE.md)")  # relative to grid/TABLE.md
 
 
@@ -107,6 +110,24 @@ def test_the_aggregate_gets_a_row_per_longer_budget(grids):
     assert re.search(rf"\| 2 × 4 \| \*\*{iqm:.1f}\*\* \[[^]]*\] \| \*\*{mean:.1f}\*\* \[", row), (row, iqm, mean)
     assert any(line.startswith("| BC | 2 × 4 | **30.5**") for line in text.splitlines())
     assert (short / "plots" / "aggregate.png").stat().st_size > 0
+
+
+def test_a_tels_row_says_its_beta_where_the_grids_trained_at_different_betas(grids):
+    """The TELS rows of the aggregate name their β only when the grids differ in it (here 1 at 5k, 0.01 at 20k)."""
+    short, longer = grids
+    for task in TASKS:
+        for seed in (0, 1):
+            _write(short, "tels", task, {**_record(seed, 5000, 500, lambda s: 20.0), "beta": 1.0})
+            _write(longer, "tels", task, {**_record(seed, 20000, 2000, lambda s: 25.0), "beta": 0.01})
+    labels = [line.split(" | ")[0] for line in run_grid.render_table(short, (longer,)).read_text().splitlines()
+              if line.startswith("| TELS")]
+    assert "| TELS, β = 1" in labels and "| TELS at 20k steps, β = 0.01" in labels
+    for task in TASKS:
+        for seed in (0, 1):
+            _write(longer, "tels", task, {**_record(seed, 20000, 2000, lambda s: 25.0), "beta": 1.0})
+    labels = [line.split(" | ")[0] for line in run_grid.render_table(short, (longer,)).read_text().splitlines()
+              if line.startswith("| TELS")]
+    assert "| TELS" in labels and "| TELS at 20k steps" in labels
 
 
 def test_two_longer_folders_at_one_budget_keep_a_row_each(grids, tmp_path):
