@@ -382,8 +382,9 @@ def _maze_arm_rows() -> list[str]:
             reading.append(f"{task}: {statistics.mean(arm):.1f} (n={len(arm)}, above the grid's TELS on {wins} of "
                            f"{len(arm)} seeds) against BC's {statistics.mean(bc_scores):.1f} (n={len(bc_scores)}), "
                            f"{relation(arm, bc_scores)} BC by the intervals")
-    return ["**The maze arms side by side** (guide α, TS-IDM steps; 5k policy steps, the grid's protocol; the runs "
-            "of the table above):", "", "| set | " + " | ".join(label for label, _, _ in MAZE_STAGE1_ARMS)
+    return ["**The maze arms side by side** (guide α, TS-IDM steps; 5k policy steps, the grid's protocol; the grid's "
+            "TELS and the study arms "
+            + ", ".join(f"`{arm}`" for _, arm, folder in MAZE_STAGE1_ARMS if folder == STUDY_RESULTS) + "):", "", "| set | " + " | ".join(label for label, _, _ in MAZE_STAGE1_ARMS)
             + " | BC |", "|---|" + "---|" * (len(MAZE_STAGE1_ARMS) + 1), *rows, "",
             "Each arm against the grid's TELS, paired by seed, and against BC by the t-intervals: "
             + "; ".join(paired) + ".", "",
