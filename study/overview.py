@@ -640,8 +640,9 @@ def antmaze_section(scores: dict[tuple[str, str], list[float]] | None = None) ->
              "from each. Evaluation: D4RL's test maze, ant dynamics and frame (`torchrl_tels.envs.antmaze`), a new "
              "goal at every reset, 1000-step episodes, success within 0.5; 20 episodes every 5,000 steps (TELS: "
              "every 2,000), the score 100 × the success rate averaged over the later half of the evaluations. "
-             "Baselines: 100k policy steps with the maze settings settled on umaze (IQL: the authors' actor and "
-             "AntMaze values; rewards r − 1).", "",
+             f"Baselines: {ANTMAZE_STEPS['bc'] // 1000}k policy steps with the maze settings settled on umaze (IQL: "
+             "the authors' actor and AntMaze values; rewards r − 1). TELS (`domain=maze`): "
+             f"{ANTMAZE_STEPS['tels'] // 1000}k TS-IDM steps, then {ANTMAZE_STEPS['tels'] // 1000}k policy steps.", "",
              *_arms_header(ANTMAZE_ARMS)]
     scores, tasks = antmaze_scores() if scores is None else scores, run_grid.ANTMAZE_100K_TASKS
     for task in tasks:
