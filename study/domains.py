@@ -582,7 +582,9 @@ def _adroit_guide_rows() -> list[str]:
         caps = list(dict.fromkeys(name for _, _, readings in capped for name in readings))
         lines += ["The α = 1 runs re-evaluated with the guide's step capped at k times the data's RMS "
                   "latent step (`python -m study.proposal_cap --run-dir <run> --name tels-<set>-seed<k> --caps 0.01 "
-                  "1 2`: no training, the same ten episodes per reading; cap 0.01 is next to no step at all):", "",
+                  "1 2`: no training, the same ten episodes per reading; cap 0.01 is next to no step at all; \"as "
+                  "trained\" is the uncapped final policy on those episodes, one evaluation, where a run's score "
+                  "averages its last ten, so the two differ):", "",
                   "| set | seed | " + " | ".join(caps) + " |", "|---|---|" + "---|" * len(caps),
                   *(f"| {task} | {seed} | " + " | ".join(f"{readings[c]:.1f}" if c in readings else "—" for c in caps)
                     + " |" for task, seed, readings in capped), ""]
