@@ -208,7 +208,8 @@ def draw(all_rows: list[Row], path: Path | None = None) -> Path:
     ax.set_title("Table 1 and Table 6 beside our runs: the paper's (hollow, ± std) and ours (filled, 95 % t-interval)",
                  fontsize=9, wrap=True)
     ax.grid(axis="x", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right", ncols=2)
+    # below the axes: inside, it hid the last rows' points
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07), ncols=5, frameon=False)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp.png")
