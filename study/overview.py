@@ -106,9 +106,28 @@ def _scores(method: str, task: str, results: Path = GRID, steps: int = domains.S
     return domains.scores(domains.runs(method, task, results, steps))
 
 
+def _tuned_default_runs(task: str) -> list[dict]:
+    """The default's runs on one of the four tuned locomotion sets (the report's default column), by seed."""
+    return [r for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, task).items())]
+
+
 def _tuned_default(task: str) -> list[float]:
-    """The default's scores on one of the four tuned locomotion sets (the report's default column), by seed."""
-    return [r["final_normalized_score_mean"] for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, task).items())]
+    """The default's scores on one of the four tuned locomotion sets, by seed."""
+    return [r["final_normalized_score_mean"] for r in _tuned_default_runs(task)]
+
+
+def _first_three_seeds(by_task: list[list[float]]):
+    """The ``[seeds, tasks]`` matrix of each task's first three scores, or ``None`` where a task has fewer."""
+    import numpy as np
+
+    if any(len(scores) < 3 for scores in by_task):
+        return None
+    return np.array([scores[:3] for scores in by_task]).T
+
+
+def _iqms(matrices: dict) -> dict[str, tuple[float, float, float]]:
+    """{label: (IQM, low, high)} of each ``[seeds, tasks]`` matrix, with its stratified-bootstrap 95 % interval."""
+    return {label: estimates[0] for label, estimates in run_grid._interval_estimates(matrices).items()}
 
 
 def _best(task: str, results: Path, steps_of=lambda m: domains.STUDY_STEPS) -> tuple[str, list[float]]:
@@ -246,7 +265,7 @@ def _arms_header(arms) -> list[str]:
     return ["| set | scores | " + " | ".join(label for _, label in arms) + " |", "|---|---|" + "---|" * len(arms)]
 
 
-def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]:
+def held_out_section(verdict: tuple[str, str, bool] | None = None) -> list[str]:
     """The five rows nothing was tuned on: every arm beside Table 1, the pre-registered reading first.
     ``verdict`` is :func:`held_out_verdict`'s answer where the caller already has it."""
     lines = ["## Table 1's other five locomotion rows: a pre-registered test of the defaults", "",
@@ -281,7 +300,8 @@ def held_out_section(verdict: tuple[list[str], bool] | None = None) -> list[str]
               + f"Commits: {_commits(every_run)}.", ""]
     lines += _frozen_lines({task: read["tels", task] for task in run_grid.HELD_OUT_TASKS})
     lines += _freeze_cause_lines(read["tels", FREEZE_TASK], read["tels_paper", FREEZE_TASK])
-    lines += (verdict or held_out_verdict())[0]
+    head, rest, _ = verdict or held_out_verdict()
+    lines += [f"**{head}**{rest}", ""]
     lines += beta1_lines()
     lines += held_out_longer_lines()
     return lines
@@ -317,8 +337,7 @@ def _nine_rows_at_beta1() -> dict[str, tuple[list[dict], list[dict], list[float]
     runs on the tuned sets are the report's default column."""
     out = {}
     for task in run_grid.TASKS:
-        out[task] = ([r for _, r in sorted(latent_scale._runs(TUNED_DEFAULT, task).items())],
-                     domains.runs(BETA1_TUNED_ARM, task, domains.STUDY_RESULTS), _scores("bc", task))
+        out[task] = (_tuned_default_runs(task), domains.runs(BETA1_TUNED_ARM, task, domains.STUDY_RESULTS), _scores("bc", task))
     for task in run_grid.HELD_OUT_TASKS:
         out[task] = (domains.runs("tels", task, HELD_OUT), domains.runs(BETA1_HELD_OUT_ARM, task, domains.STUDY_RESULTS),
                      _scores("bc", task, HELD_OUT))
@@ -366,9 +385,9 @@ def _beta1_decision(rows: dict[str, tuple[list[dict], list[dict], list[float]]])
         return (rule + f" Not decided yet: {len(short)} of {len(rows)} rows lack three seeds of both "
                 f"({', '.join(t.removesuffix('-v2-10k') for t in short)}).")
     ahead = [task for task, (default, beta1) in scores.items() if np.mean(default) > np.mean(beta1)]
-    matrices = {arm: np.array([pair[k][:3] for pair in scores.values()]).T for k, arm in enumerate(("default", "beta1"))}
-    estimates = run_grid._interval_estimates(matrices)
-    (d_iqm, d_low, d_high), (b_iqm, b_low, b_high) = estimates["default"][0], estimates["beta1"][0]
+    iqms = _iqms({arm: _first_three_seeds([pair[k] for pair in scores.values()])
+                  for k, arm in enumerate(("default", "beta1"))})
+    (d_iqm, d_low, d_high), (b_iqm, b_low, b_high) = iqms["default"], iqms["beta1"]
     keeps = len(ahead) >= BETA1_ROWS_TO_KEEP and d_iqm > b_iqm
     return (rule + f" β = 0.01 has the higher mean on {len(ahead)} of {len(rows)} rows "
             f"({', '.join(t.removesuffix('-v2-10k') for t in ahead) or 'none'}); nine-row IQM {d_iqm:.1f} "
@@ -465,7 +484,7 @@ def _still_shares() -> dict[str, float]:
     return shares
 
 
-def held_out_verdict_line(verdict: tuple[list[str], bool] | None = None) -> list[str]:
+def held_out_verdict_line(verdict: tuple[str, str, bool] | None = None) -> list[str]:
     """The pre-registered rows for the report's opening verdict: the default against BC on each row run so far.
     ``verdict`` is :func:`held_out_verdict`'s answer where the caller already has it."""
     pairs = []
@@ -475,38 +494,30 @@ def held_out_verdict_line(verdict: tuple[list[str], bool] | None = None) -> list
             pairs.append(f"{task.removesuffix('-v2-10k')}: the default {sum(default) / len(default):.1f} "
                          f"(n={len(default)}), "
                          f"BC {sum(bc) / len(bc):.1f} (n={len(bc)}), Table 1's TELS {_paper(task, 'tels')[0]:.1f}")
-    verdict, complete = verdict or held_out_verdict()
+    head, rest, complete = verdict or held_out_verdict()
     return ["**Table 1's five other locomotion rows** (pre-registered; nothing was tuned on them)"
             + (": " if complete else ", so far: ") + ("; ".join(pairs) if pairs else "no runs") + ". "
-            + verdict[0].replace("**Verdict over the nine rows", "The verdict over the nine rows", 1).replace("**", "", 1)
+            + f"The {head[0].lower()}{head[1:]}{rest}"
             + " Details: [the five rows](#table-1s-other-five-locomotion-rows-a-pre-registered-test-of-the-defaults).", ""]
 
 
-def held_out_verdict() -> tuple[list[str], bool]:
-    """The default against BC over all nine locomotion rows, once every cell has three seeds, and whether every
-    cell has them."""
-    import numpy as np
-
+def held_out_verdict() -> tuple[str, str, bool]:
+    """The default against BC over all nine locomotion rows, once every cell has three seeds: its head, the text
+    after the head, and whether every cell has its seeds."""
     tasks = (*run_grid.TASKS, *run_grid.HELD_OUT_TASKS)
-
-    def matrix(scores_of) -> np.ndarray | None:
-        by_task = [scores_of(t) for t in tasks]
-        if any(len(s) < 3 for s in by_task):
-            return None
-        return np.array([s[:3] for s in by_task]).T  # [seeds, tasks]
-
-    default = matrix(lambda t: _tuned_default(t) if t in run_grid.TASKS else _scores("tels", t, HELD_OUT))
-    bc = matrix(lambda t: _scores("bc", t) if t in run_grid.TASKS else _scores("bc", t, HELD_OUT))
+    default = _first_three_seeds([_tuned_default(t) if t in run_grid.TASKS else _scores("tels", t, HELD_OUT)
+                                  for t in tasks])
+    bc = _first_three_seeds([_scores("bc", t) if t in run_grid.TASKS else _scores("bc", t, HELD_OUT) for t in tasks])
     if default is None or bc is None:
-        return ["**Verdict over the nine rows**: not yet; it needs three seeds of the default and of BC on every row.",
-                ""], False
-    estimates = run_grid._interval_estimates({"default": default, "bc": bc})
-    (d_iqm, d_low, d_high), (b_iqm, b_low, b_high) = estimates["default"][0], estimates["bc"][0]
+        return ("Verdict over the nine rows", ": not yet; it needs three seeds of the default and of BC on every row.",
+                False)
+    iqms = _iqms({"default": default, "bc": bc})
+    (d_iqm, d_low, d_high), (b_iqm, b_low, b_high) = iqms["default"], iqms["bc"]
     relation = "above" if d_low > b_high else "below" if d_high < b_low else "level with"
-    return [f"**Verdict over the nine rows × 3 seeds** (pre-registered reading): the default's IQM "
+    return ("Verdict over the nine rows × 3 seeds", " (pre-registered reading): the default's IQM "
             f"{d_iqm:.1f} [{d_low:.1f}, {d_high:.1f}] is {relation} BC's, {b_iqm:.1f} [{b_low:.1f}, {b_high:.1f}] "
             "(stratified-bootstrap 95 % intervals). "
-            + against_table1_tels(tasks, default.mean(0).tolist(), [_paper(t, "tels") for t in tasks]), ""], True
+            + against_table1_tels(tasks, default.mean(0).tolist(), [_paper(t, "tels") for t in tasks]), True)
 
 
 def against_table1_tels(tasks, means: list[float], paper: list[tuple[float, float]]) -> str:
